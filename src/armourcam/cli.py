@@ -1,0 +1,48 @@
+"""The ``armourcam`` command line: subcommands are discovered from :mod:`armourcam.commands`.
+
+Each command module defines ``register(subparsers)`` that adds its parser and sets ``func`` to a
+callable taking the parsed arguments and returning the exit status. Errors that the cores raise for
+bad input (``ValueError`` subclasses such as ``DetectorError``) end the command with a one-line
+message and exit status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+from collections.abc import Sequence
+
+from . import __version__, commands
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full argument parser with every discovered subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="armourcam",
+        description="Measure 3-D displacement of armour-unit models from circular fiducials.",
+    )
+    parser.add_argument("--version", action="version", version=f"armourcam {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        module = importlib.import_module(f"{commands.__name__}.{info.name}")
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the process exit status."""
+    args = build_parser().parse_args(argv)
+    try:
+        status = args.func(args)
+    except KeyboardInterrupt:
+        return 130
+    except (ValueError, OSError) as err:
+        print(f"armourcam {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    return int(status or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

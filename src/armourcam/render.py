@@ -1,0 +1,339 @@
+"""The synthetic scene renderer: planar printed patches seen by a calibrated pinhole camera.
+
+This is armourcam's one renderer, used by tests, benchmarks, bag generation and the demo. Each
+patch (a fiducial, or clutter such as a dark blob, a plain circle or a text-like mark) is a plane at
+a known 3-D pose whose printed reflectance is a function of plane coordinates. For every pixel the
+renderer traces rays through the pixel's area (pixel centres at integer coordinates, OpenCV's
+convention), undistorting them through the lens model, intersects them with the patch plane and
+averages the reflectance: area integration by supersampling, refined only where the pixel straddles
+an edge. Gaussian blur (defocus) and additive Gaussian noise as a fraction of the full range follow,
+as in the paper's section 4.1. Ground truth comes with every image: projected centres, the image
+conics of every printed circle, and the 3-D pose.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from fiducial_detector.design import FiducialDesign, get_design, reflectance
+from pose_estimator.camera import CameraModel
+
+# Paper-white and toner-black levels as fractions of the sensor's full range.
+WHITE = 0.85
+BLACK = 0.12
+BACKGROUND = 0.45
+MARGIN = 1.3  # the white paper disc around a printed fiducial, in outer radii
+
+ReflectanceFn = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
+
+
+class RenderError(ValueError):
+    """A scene cannot be rendered as asked (bad pose, size or parameter)."""
+
+
+def rotation_from_slant_tilt(slant: float, tilt: float = 0.0, spin: float = 0.0) -> NDArray:
+    """Rotation (target frame -> camera frame) of a target slanted away from the camera.
+
+    Parameters
+    ----------
+    slant : float
+        Angle between the target's normal and the direction towards the camera, radians.
+    tilt : float
+        Direction of the slant axis in the image plane, radians.
+    spin : float
+        In-plane rotation of the target about its own normal, radians.
+
+    Returns
+    -------
+    (3, 3) ndarray
+        At ``slant = tilt = spin = 0`` the target faces the camera upright:
+        ``diag(1, -1, -1)`` (target y up appears as image up, the face looks at the camera).
+    """
+    face = np.diag([1.0, -1.0, -1.0])
+    cs, ss = np.cos(spin), np.sin(spin)
+    rz = np.array([[cs, -ss, 0.0], [ss, cs, 0.0], [0.0, 0.0, 1.0]])
+    # Slant about an in-image axis at angle `tilt`: rotate about that axis in the camera frame.
+    axis = np.array([np.cos(tilt), np.sin(tilt), 0.0])
+    rs, _ = cv2.Rodrigues(axis * slant)
+    return np.asarray(rs @ face @ rz, dtype=np.float64)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Patch:
+    """A planar printed patch at a 3-D pose.
+
+    Attributes
+    ----------
+    rotation : (3, 3) ndarray
+        Patch frame -> camera frame; the patch lies in its frame's z = 0 plane, printed face +z.
+    position_mm : (3,) ndarray
+        Origin of the patch frame in the camera frame, mm.
+    extent_mm : float
+        Radius around the origin outside which the patch does not exist.
+    reflectance : callable
+        ``f(x_mm, y_mm) -> reflectance in [0, 1]`` over patch-frame millimetres (0 black, 1 white);
+        points outside ``extent_mm`` are never asked for.
+    """
+
+    rotation: NDArray[np.float64]
+    position_mm: NDArray[np.float64]
+    extent_mm: float
+    reflectance: ReflectanceFn
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TargetTruth:
+    """Ground truth of one rendered fiducial.
+
+    Attributes
+    ----------
+    code, design, diameter_mm
+        What was printed.
+    rotation, position_mm
+        Pose (target frame -> camera frame; centre in mm).
+    normal : (3,) ndarray
+        Unit normal of the printed face in the camera frame.
+    center_px : (2,) ndarray
+        Projection (with distortion) of the fiducial's centre, pixels.
+    conics : tuple of (3, 3) ndarray
+        Ideal (undistorted) image conics of the design's printed circles, largest first.
+    outer_diameter_px : float
+        Imaged diameter of the outer printed circle, fronto-parallel equivalent
+        (``f * diameter / z``).
+    """
+
+    code: int
+    design: str
+    diameter_mm: float
+    rotation: NDArray[np.float64]
+    position_mm: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    center_px: NDArray[np.float64]
+    conics: tuple[NDArray[np.float64], ...]
+    outer_diameter_px: float
+
+
+@dataclass(frozen=True, slots=True)
+class Target:
+    """A fiducial to render: what is printed and where it is."""
+
+    code: int
+    design: str
+    diameter_mm: float
+    rotation: NDArray[np.float64] = field(default_factory=lambda: np.diag([1.0, -1.0, -1.0]))
+    position_mm: NDArray[np.float64] = field(default_factory=lambda: np.array([0.0, 0.0, 800.0]))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class RenderedScene:
+    """A rendered image with its ground truth.
+
+    Attributes
+    ----------
+    image : (H, W) ndarray of uint8 or uint16
+    truth : tuple of TargetTruth
+        One per fiducial, in the order given.
+    camera : CameraModel
+    """
+
+    image: NDArray[np.generic]
+    truth: tuple[TargetTruth, ...]
+    camera: CameraModel
+
+
+def fiducial_patch(target: Target) -> Patch:
+    """The printed fiducial (with its white paper margin) as a renderable patch."""
+    design = get_design(target.design)
+    radius = target.diameter_mm / 2.0
+    code = target.code
+
+    def f(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+        return reflectance(design, code, x / radius, y / radius)
+
+    return Patch(
+        np.asarray(target.rotation, dtype=np.float64),
+        np.asarray(target.position_mm, dtype=np.float64),
+        MARGIN * radius,
+        f,
+    )
+
+
+def target_truth(camera: CameraModel, target: Target) -> TargetTruth:
+    """Ground truth of a fiducial: projected centre, circle conics and pose."""
+    design: FiducialDesign = get_design(target.design)
+    R = np.asarray(target.rotation, dtype=np.float64)
+    t = np.asarray(target.position_mm, dtype=np.float64)
+    # Homography plane (x, y, 1) [mm] -> ideal pixels; a circle x^2 + y^2 = rho^2 maps to
+    # C = H^-T diag(1, 1, -rho^2) H^-1.
+    H = camera.K @ np.column_stack([R[:, 0], R[:, 1], t])
+    Hinv = np.linalg.inv(H)
+    conics = []
+    for circle in design.circles:
+        rho = circle.radius * target.diameter_mm / 2.0
+        C = Hinv.T @ np.diag([1.0, 1.0, -rho * rho]) @ Hinv
+        conics.append(C / np.sqrt(abs(np.linalg.det(C[:2, :2]))))
+    center = camera.project(t.reshape(1, 3))[0]
+    return TargetTruth(
+        code=target.code,
+        design=target.design,
+        diameter_mm=target.diameter_mm,
+        rotation=R,
+        position_mm=t,
+        normal=R[:, 2].copy(),
+        center_px=center,
+        conics=tuple(conics),
+        outer_diameter_px=float(camera.K[0, 0] * target.diameter_mm / t[2]),
+    )
+
+
+def _patch_bbox(camera: CameraModel, patch: Patch) -> tuple[int, int, int, int] | None:
+    """Pixel bounding box (u0, v0, u1, v1), inclusive-exclusive, or None when off-image."""
+    ang = np.linspace(0.0, 2.0 * np.pi, 64, endpoint=False)
+    ring = np.column_stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)]) * patch.extent_mm
+    pts = ring @ patch.rotation.T + patch.position_mm
+    if np.any(pts[:, 2] <= 1e-6):
+        raise RenderError("a patch reaches behind the camera")
+    uv = camera.project(pts)
+    u0 = max(int(np.floor(uv[:, 0].min())) - 2, 0)
+    v0 = max(int(np.floor(uv[:, 1].min())) - 2, 0)
+    u1 = min(int(np.ceil(uv[:, 0].max())) + 3, camera.width)
+    v1 = min(int(np.ceil(uv[:, 1].max())) + 3, camera.height)
+    if u0 >= u1 or v0 >= v1:
+        return None
+    return u0, v0, u1, v1
+
+
+def _sample(
+    camera: CameraModel, patch: Patch, u: NDArray[np.float64], v: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Reflectance of ``patch`` seen at pixel positions (u, v), and where the patch is hit."""
+    shape = u.shape
+    xy = camera.undistort_normalized(np.column_stack([u.ravel(), v.ravel()]))
+    d = np.column_stack([xy, np.ones(len(xy))])
+    n = patch.rotation[:, 2]
+    denom = d @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (n @ patch.position_mm) / denom
+    hit = np.isfinite(s) & (s > 0)
+    P = d * s[:, None] - patch.position_mm
+    q = P @ patch.rotation  # = R^T (P - t), row-wise
+    inside = hit & (q[:, 0] ** 2 + q[:, 1] ** 2 <= patch.extent_mm**2)
+    value = np.zeros(len(xy))
+    if np.any(inside):
+        value[inside] = patch.reflectance(q[inside, 0], q[inside, 1])
+    return value.reshape(shape), inside.reshape(shape)
+
+
+def _render_patch(
+    camera: CameraModel,
+    patch: Patch,
+    canvas: NDArray[np.float64],
+    supersample: int,
+) -> None:
+    """Composite one patch onto ``canvas`` (reflectance units), area-integrating each pixel."""
+    box = _patch_bbox(camera, patch)
+    if box is None:
+        return
+    u0, v0, u1, v1 = box
+    # Probe a half-pixel lattice covering the box; pixels whose 3x3 probes disagree straddle an
+    # edge (or the patch border) and get the full supersampling, the rest take the probe value.
+    pu = u0 - 0.5 + 0.5 * np.arange(2 * (u1 - u0) + 1)
+    pv = v0 - 0.5 + 0.5 * np.arange(2 * (v1 - v0) + 1)
+    gu, gv = np.meshgrid(pu, pv)
+    val, hit = _sample(camera, patch, gu, gv)
+    code = np.where(hit, val, -1.0)
+    h, w = v1 - v0, u1 - u0
+    blocks = np.lib.stride_tricks.sliding_window_view(code, (3, 3))[::2, ::2]
+    lo = blocks.min(axis=(2, 3))
+    hi = blocks.max(axis=(2, 3))
+    uniform = lo == hi
+    region = canvas[v0:v1, u0:u1]
+    centre = code[1::2, 1::2][:h, :w]
+    take = uniform & (centre >= 0)
+    region[take] = centre[take]
+    rows, cols = np.nonzero(~uniform)
+    if rows.size == 0:
+        return
+    offs = (np.arange(supersample) + 0.5) / supersample - 0.5
+    ou, ov = np.meshgrid(offs, offs)
+    su = (cols + u0)[:, None] + ou.ravel()[None, :]
+    sv = (rows + v0)[:, None] + ov.ravel()[None, :]
+    sval, shit = _sample(camera, patch, su, sv)
+    cover = shit.mean(axis=1)
+    inside_mean = np.where(shit, sval, 0.0).sum(axis=1) / np.maximum(shit.sum(axis=1), 1)
+    # Partial coverage at the patch border blends with what is already on the canvas.
+    region[rows, cols] = cover * inside_mean + (1.0 - cover) * region[rows, cols]
+
+
+def render(
+    camera: CameraModel,
+    targets: Sequence[Target] = (),
+    *,
+    clutter: Sequence[Patch] = (),
+    blur_sigma: float = 0.0,
+    noise: float = 0.0,
+    rng: np.random.Generator | None = None,
+    supersample: int = 8,
+    background: float = BACKGROUND,
+    white: float = WHITE,
+    black: float = BLACK,
+    dtype: type[np.unsignedinteger] = np.uint8,
+) -> RenderedScene:
+    """Render fiducials and clutter into one image with ground truth.
+
+    Parameters
+    ----------
+    camera : CameraModel
+        Image size, intrinsics and lens distortion.
+    targets : sequence of Target
+        Fiducials to draw.
+    clutter : sequence of Patch
+        Other printed things in the scene (drawn before the fiducials, farthest first).
+    blur_sigma : float
+        Standard deviation of the Gaussian defocus blur, pixels (0 for none).
+    noise : float
+        Standard deviation of the additive Gaussian noise as a fraction of the full range.
+    rng : numpy.random.Generator, optional
+        Noise source (required when ``noise > 0`` for reproducible tests; a fresh one otherwise).
+    supersample : int
+        Samples per pixel side where a pixel straddles an edge (``supersample**2`` rays).
+    background, white, black : float
+        Scene background, paper-white and toner-black levels as fractions of the full range.
+    dtype : {numpy.uint8, numpy.uint16}
+        Output sample type.
+
+    Returns
+    -------
+    RenderedScene
+    """
+    if blur_sigma < 0 or noise < 0 or supersample < 1:
+        raise RenderError(
+            f"blur_sigma, noise must be >= 0 and supersample >= 1 "
+            f"(got {blur_sigma}, {noise}, {supersample})"
+        )
+    if dtype not in (np.uint8, np.uint16):
+        raise RenderError(f"dtype must be uint8 or uint16, got {dtype}")
+    canvas = np.full((camera.height, camera.width), np.nan)
+    # Painter's algorithm, farthest first, so nearer patches occlude farther ones.
+    patches = list(clutter) + [fiducial_patch(t) for t in targets]
+    patches.sort(key=lambda p: -float(p.position_mm[2]))
+    for patch in patches:
+        _render_patch(camera, patch, canvas, supersample)
+    empty = np.isnan(canvas)
+    refl = np.where(empty, 0.0, canvas)
+    # Reflectance -> intensity: background where nothing is printed, black..white elsewhere.
+    img = np.where(empty, background, black + (white - black) * refl)
+    if blur_sigma > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma, borderType=cv2.BORDER_REFLECT)
+    if noise > 0:
+        gen = rng if rng is not None else np.random.default_rng()
+        img = img + gen.normal(0.0, noise, img.shape)
+    full = float(np.iinfo(dtype).max)
+    out = np.clip(np.rint(img * full), 0, full).astype(dtype)
+    truth = tuple(target_truth(camera, t) for t in targets)
+    return RenderedScene(out, truth, camera)

@@ -1,0 +1,1 @@
+"""Displacement matching: optimal before/after correspondence, per-unit motion and damage."""

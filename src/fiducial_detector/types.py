@@ -1,0 +1,105 @@
+"""Result types of the detector.
+
+Pixel convention everywhere: ``(u, v)`` = (x, y) = (column, row), with pixel centres at integer
+coordinates (OpenCV's convention); the top-left pixel covers ``[-0.5, 0.5] x [-0.5, 0.5]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Ellipse:
+    """An ellipse fitted to one printed circle of a fiducial, in pixels.
+
+    Attributes
+    ----------
+    center_px : (float, float)
+        Centre ``(u, v)`` of the ellipse (not, in general, the image of the circle's centre).
+    semi_major, semi_minor : float
+        Semi-axes in pixels, ``semi_major >= semi_minor > 0``.
+    angle : float
+        Angle of the major axis from +u towards +v, radians in ``[0, pi)``.
+    covariance : (5, 5) ndarray
+        Covariance of ``(u, v, semi_major, semi_minor, angle)`` from the fit's residuals.
+    radius : float
+        Nominal radius of the printed circle it was fitted to, as a fraction of the outer radius.
+    rms_residual : float
+        Root-mean-square algebraic residual of the fit (dimensionless, for diagnostics).
+    """
+
+    center_px: tuple[float, float]
+    semi_major: float
+    semi_minor: float
+    angle: float
+    covariance: NDArray[np.float64]
+    radius: float
+    rms_residual: float = 0.0
+
+    def conic(self) -> NDArray[np.float64]:
+        """Symmetric 3x3 conic matrix ``C`` with ``[u v 1] C [u v 1]^T = 0`` on the ellipse.
+
+        Normalised so that ``det(C[:2, :2]) = 1 / (a^2 b^2)`` (the geometric scale).
+        """
+        return conic_from_parameters(
+            self.center_px[0], self.center_px[1], self.semi_major, self.semi_minor, self.angle
+        )
+
+
+def conic_from_parameters(
+    u: float, v: float, a: float, b: float, angle: float
+) -> NDArray[np.float64]:
+    """Conic matrix of the ellipse with centre ``(u, v)``, semi-axes ``a``, ``b`` and ``angle``."""
+    c, s = np.cos(angle), np.sin(angle)
+    # Quadratic form of the centred ellipse: R diag(1/a^2, 1/b^2) R^T.
+    rot = np.array([[c, -s], [s, c]])
+    q = rot @ np.diag([1.0 / (a * a), 1.0 / (b * b)]) @ rot.T
+    centre = np.array([u, v])
+    conic = np.empty((3, 3))
+    conic[:2, :2] = q
+    conic[:2, 2] = conic[2, :2] = -q @ centre
+    conic[2, 2] = centre @ q @ centre - 1.0
+    return conic
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FiducialDetection:
+    """One fiducial found in an image.
+
+    Attributes
+    ----------
+    code : int
+        Code number in the codebook.
+    hamming : int
+        Hamming distance between the sectors read and the code (0 or 1 are accepted).
+    center_px : (float, float)
+        Centre ``(u, v)`` of the pose ellipse, pixels.
+    ellipses : tuple of Ellipse
+        Ellipses fitted to the design's printed circles, largest first; ``ellipses[0]`` is the pose
+        circle's.
+    contrast : float
+        White level minus black level around the fiducial, as a fraction of the image's full scale.
+    design : str
+        Name of the fiducial design (``"dot"`` or ``"ring"``).
+    rotation : float
+        In-plane orientation: image angle (radians, from +u towards +v) of the boundary between
+        sectors 15 and 0 as read, for diagnostics and unit rotation.
+    """
+
+    code: int
+    hamming: int
+    center_px: tuple[float, float]
+    ellipses: tuple[Ellipse, ...]
+    contrast: float
+    design: str
+    rotation: float = 0.0
+    extra: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def pose_ellipse(self) -> Ellipse:
+        """The ellipse of the pose circle."""
+        return self.ellipses[0]
