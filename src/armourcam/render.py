@@ -76,8 +76,9 @@ class Patch:
     extent_mm : float
         Radius around the origin outside which the patch does not exist.
     reflectance : callable
-        ``f(x_mm, y_mm) -> reflectance in [0, 1]`` over patch-frame millimetres (0 black, 1 white);
-        points outside ``extent_mm`` are never asked for.
+        ``f(x_mm, y_mm) -> reflectance in [0, 1]`` over patch-frame millimetres (0 black, 1 white),
+        or NaN where the patch is transparent (so patches need not be discs); points outside
+        ``extent_mm`` are never asked for.
     """
 
     rotation: NDArray[np.float64]
@@ -224,8 +225,13 @@ def _sample(
     q = P @ patch.rotation  # = R^T (P - t), row-wise
     inside = hit & (q[:, 0] ** 2 + q[:, 1] ** 2 <= patch.extent_mm**2)
     value = np.zeros(len(xy))
-    if np.any(inside):
-        value[inside] = patch.reflectance(q[inside, 0], q[inside, 1])
+    idx = np.flatnonzero(inside)
+    if idx.size:
+        refl = np.asarray(patch.reflectance(q[idx, 0], q[idx, 1]), dtype=np.float64)
+        # NaN reflectance marks transparent parts of a patch (a blob's outside, a text mark).
+        clear = np.isnan(refl)
+        inside[idx[clear]] = False
+        value[idx[~clear]] = refl[~clear]
     return value.reshape(shape), inside.reshape(shape)
 
 

@@ -1,0 +1,363 @@
+"""Synthetic armour fields: dolosse on a breakwater slope, before and after a wave run.
+
+Each unit carries the same set of coded fiducials (the paper's section 5 set-up: every dolos bears
+the same four codes), glued at fixed positions and normals on the unit. Units lie on a 1:1.5 slope
+seen obliquely by the paper's camera (3008x2000, 7.8 um pixels, 45 mm lens). A wave run then moves
+some units (up to 2 Dn, mostly down-slope, with a rotation), overturns a few, and fiducials are
+hidden at random in each state (occlusion). Everything comes with exact ground truth: which
+fiducial is which, and each unit's rigid motion.
+
+Frames: the camera frame of :mod:`pose_estimator` (x right, y down, z forward, mm). A unit's local
+frame has its origin at the unit's centre; the unit rotation maps local to camera coordinates.
+The field gives :class:`armourcam.render.Target` lists for the one renderer and
+:class:`pose_estimator.FiducialPose` lists (exact, or with simulated estimation noise) for the
+matcher.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from armourcam.render import Target
+from pose_estimator.camera import CameraModel
+from pose_estimator.types import FiducialPose
+
+PIXEL_PITCH_MM = 0.0078
+LENS_MM = 45.0
+
+
+def field_camera() -> CameraModel:
+    """The paper's camera: 3008x2000 pixels of 7.8 um behind a 45 mm lens (f = 5769 px)."""
+    return CameraModel.ideal(3008, 2000, LENS_MM / PIXEL_PITCH_MM)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class UnitGeometry:
+    """Where the fiducials sit on one unit (unit-local frame, mm).
+
+    Attributes
+    ----------
+    codes : tuple of int
+        Code of each fiducial slot (the same on every unit).
+    positions_mm : (K, 3) ndarray
+        Fiducial centres on the unit.
+    normals : (K, 3) ndarray
+        Unit normals of the printed faces.
+    dn_mm : float
+        Nominal unit size Dn (cube root of the unit's volume), mm.
+    """
+
+    codes: tuple[int, ...]
+    positions_mm: NDArray[np.float64]
+    normals: NDArray[np.float64]
+    dn_mm: float
+
+
+def dolos_geometry(height_mm: float = 38.0, codes: tuple[int, ...] = (3, 17, 29, 41)) -> UnitGeometry:
+    """A dolos of overall height ``height_mm`` with a fiducial on each of its four fluke ends.
+
+    The shank runs along local x; the flukes at +x point along +-y, those at -x along +-z. The
+    fiducials on the +x flukes lean towards +z, so a unit resting with local +z towards the camera
+    shows three fiducials (and one when overturned). Dn ~ 0.54 H (volume ~ 0.16 H^3 for a dolos of
+    waist ratio about 0.33).
+    """
+    s, f = 0.25 * height_mm, 0.4 * height_mm
+    pos = np.array([[s, f, 0.0], [s, -f, 0.0], [-s, 0.0, f], [-s, 0.0, -f]])
+    nrm = np.array([[0.0, 1.0, 1.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    return UnitGeometry(tuple(int(c) for c in codes), pos, nrm, 0.54 * height_mm)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FieldState:
+    """All units and fiducials of a field at one moment.
+
+    Attributes
+    ----------
+    rotations : (N, 3, 3) ndarray
+        Unit-local -> camera rotation of each unit.
+    centres_mm : (N, 3) ndarray
+        Unit centres, camera frame.
+    unit : (M,) ndarray of int
+        Unit of each fiducial (``M = N * K``; fiducial ``u * K + k`` is slot ``k`` of unit ``u``).
+    code : (M,) ndarray of int
+    position_mm, normal : (M, 3) ndarray
+        Fiducial centres and face normals, camera frame.
+    visible : (M,) ndarray of bool
+        Facing the camera (slant below the limit) and not hidden.
+    """
+
+    rotations: NDArray[np.float64]
+    centres_mm: NDArray[np.float64]
+    unit: NDArray[np.intp]
+    code: NDArray[np.int64]
+    position_mm: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    visible: NDArray[np.bool_]
+
+    @property
+    def visible_ids(self) -> NDArray[np.intp]:
+        """Fiducial ids (``u * K + k``) of the visible fiducials, in order."""
+        return np.flatnonzero(self.visible)
+
+    def targets(self, design: str = "ring", diameter_mm: float = 7.1) -> list[Target]:
+        """Renderable targets of the visible fiducials (same order as :attr:`visible_ids`)."""
+        out = []
+        for i in self.visible_ids.tolist():
+            out.append(
+                Target(
+                    int(self.code[i]),
+                    design,
+                    diameter_mm,
+                    _face_rotation(self.normal[i], self.rotations[self.unit[i]]),
+                    self.position_mm[i].copy(),
+                )
+            )
+        return out
+
+    def poses(
+        self,
+        rng: np.random.Generator | None = None,
+        *,
+        sigma_xy_mm: float = 0.1,
+        sigma_z_mm: float = 1.0,
+    ) -> list[FiducialPose]:
+        """Fiducial poses of the visible fiducials (order of :attr:`visible_ids`).
+
+        With ``rng`` the positions carry simulated monocular estimation noise: ``sigma_xy_mm``
+        across the viewing ray and ``sigma_z_mm`` along it, the latter growing with the slant
+        (``/ cos(slant)``, capped at 4x) as in the paper's Figure 4; the covariance says so.
+        Without ``rng`` the positions are exact (covariance still the model's).
+        """
+        out = []
+        for i in self.visible_ids.tolist():
+            p = self.position_mm[i]
+            ray = p / np.linalg.norm(p)
+            cos_slant = float(np.clip(-ray @ self.normal[i], 0.25, 1.0))
+            sz = sigma_z_mm / cos_slant
+            cov = sigma_xy_mm**2 * np.eye(3) + (sz**2 - sigma_xy_mm**2) * np.outer(ray, ray)
+            q = p if rng is None else rng.multivariate_normal(p, cov)
+            out.append(FiducialPose(int(self.code[i]), q, self.normal[i].copy(), cov))
+        return out
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Field:
+    """A synthetic armour field before and after a wave run, with ground truth.
+
+    Attributes
+    ----------
+    geometry : UnitGeometry
+    camera : CameraModel
+    before, after : FieldState
+    moved, overturned : (N,) ndarray of bool
+        Units the run moved (translated and turned) or overturned; the rest are exactly still.
+    section_width_mm : float
+        Width of the modelled section along the crest.
+    """
+
+    geometry: UnitGeometry
+    camera: CameraModel
+    before: FieldState
+    after: FieldState
+    moved: NDArray[np.bool_]
+    overturned: NDArray[np.bool_]
+    section_width_mm: float
+
+    @property
+    def n_units(self) -> int:
+        """Number of units."""
+        return len(self.before.centres_mm)
+
+    def motion(self, unit: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """True rigid motion of a unit: ``(R, t)`` with ``x_after = R @ x_before + t``."""
+        R = self.after.rotations[unit] @ self.before.rotations[unit].T
+        t = self.after.centres_mm[unit] - R @ self.before.centres_mm[unit]
+        return R, t
+
+    def displacement_at(self, unit: int, point_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+        """True displacement (mm, camera frame) of a point rigidly attached to ``unit``."""
+        R, t = self.motion(unit)
+        p = np.asarray(point_mm, dtype=np.float64)
+        return np.asarray(R @ p + t - p, dtype=np.float64)
+
+
+def _face_rotation(normal: NDArray[np.float64], unit_rot: NDArray[np.float64]) -> NDArray:
+    """A target rotation whose z axis is ``normal`` (in-plane angle tied to the unit)."""
+    z = normal / np.linalg.norm(normal)
+    ref = unit_rot[:, 0] if abs(unit_rot[:, 0] @ z) < 0.9 else unit_rot[:, 1]
+    x = ref - (ref @ z) * z
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def _rot(axis: NDArray[np.float64], angle: float) -> NDArray[np.float64]:
+    a = np.asarray(axis, dtype=np.float64)
+    r, _ = cv2.Rodrigues(a / np.linalg.norm(a) * angle)
+    return np.asarray(r, dtype=np.float64)
+
+
+def _state(
+    geometry: UnitGeometry,
+    rotations: NDArray[np.float64],
+    centres: NDArray[np.float64],
+    hidden: NDArray[np.bool_],
+    max_slant_deg: float,
+) -> FieldState:
+    n, k = len(centres), len(geometry.codes)
+    pos = np.einsum("uij,kj->uki", rotations, geometry.positions_mm) + centres[:, None, :]
+    nrm = np.einsum("uij,kj->uki", rotations, geometry.normals)
+    pos, nrm = pos.reshape(-1, 3), nrm.reshape(-1, 3)
+    towards = -pos / np.linalg.norm(pos, axis=1, keepdims=True)
+    facing = np.einsum("ki,ki->k", towards, nrm) > np.cos(np.radians(max_slant_deg))
+    return FieldState(
+        rotations,
+        centres,
+        np.repeat(np.arange(n), k),
+        np.tile(np.asarray(geometry.codes, dtype=np.int64), n),
+        pos,
+        nrm,
+        facing & ~hidden,
+    )
+
+
+def make_field(
+    n_units: int = 300,
+    *,
+    seed: int = 0,
+    geometry: UnitGeometry | None = None,
+    camera: CameraModel | None = None,
+    moved_fraction: float = 0.10,
+    max_move_dn: float = 2.0,
+    overturned_fraction: float = 0.02,
+    hidden_fraction: float = 0.05,
+    pitch_dn: float = 1.75,
+    slope: float = 1.5,
+    view_deg: float = 35.0,
+    max_slant_deg: float = 75.0,
+    min_gap_mm: float = 9.0,
+) -> Field:
+    """A dolos field on a slope, before and after a simulated wave run.
+
+    Parameters
+    ----------
+    n_units : int
+        Number of units.
+    seed : int
+        Seed of everything random.
+    geometry : UnitGeometry, optional
+        Unit and fiducial layout (default :func:`dolos_geometry`).
+    camera : CameraModel, optional
+        Default :func:`field_camera`; the field is centred in its view and the distance chosen so
+        that it fills about 90 % of the image width.
+    moved_fraction : float
+        Fraction of units moved: translated ``U(0.1, max_move_dn) * Dn`` within +-60 deg of
+        down-slope, and turned up to 30 deg about a random axis.
+    overturned_fraction : float
+        Fraction of units overturned (turned 180 deg about the shank) and shifted ``U(0.2, 1.5) Dn``.
+    hidden_fraction : float
+        Fraction of fiducials hidden (occluded) in each state, independently.
+    pitch_dn : float
+        Grid pitch of the unit centres, in Dn.
+    slope : float
+        Slope 1:``slope`` (only sets the drawing's plausibility; the camera sees the slope plane
+        at ``view_deg`` from its normal).
+    view_deg : float
+        Angle between the camera's axis and the slope's normal.
+    max_slant_deg : float
+        A fiducial is visible when its normal is within this angle of the direction to the camera.
+    min_gap_mm : float
+        Smallest distance between fiducials of different units in the baseline.
+
+    Returns
+    -------
+    Field
+    """
+    if n_units < 1:
+        raise ValueError(f"n_units must be >= 1, got {n_units}")
+    for name, frac in (
+        ("moved_fraction", moved_fraction),
+        ("overturned_fraction", overturned_fraction),
+        ("hidden_fraction", hidden_fraction),
+    ):
+        if not 0.0 <= frac <= 1.0:
+            raise ValueError(f"{name} must be in [0, 1], got {frac}")
+    if moved_fraction + overturned_fraction > 1.0:
+        raise ValueError("moved_fraction + overturned_fraction exceeds 1")
+    del slope  # the geometry below depends only on the viewing angle
+    geo = geometry if geometry is not None else dolos_geometry()
+    cam = camera if camera is not None else field_camera()
+    rng = np.random.default_rng(seed)
+    dn = geo.dn_mm
+    pitch = pitch_dn * dn
+    ncol = max(1, int(np.ceil(np.sqrt(n_units * 1.4))))
+    nrow = int(np.ceil(n_units / ncol))
+    width = ncol * pitch
+    # Distance so the field spans ~90 % of the image width.
+    z0 = cam.K[0, 0] * (width + 2 * pitch) / (0.9 * cam.width)
+    th = np.radians(view_deg)
+    n_s = np.array([0.0, -np.sin(th), -np.cos(th)])  # slope normal, towards the camera
+    e1 = np.array([1.0, 0.0, 0.0])  # along the crest
+    e2 = np.cross(n_s, e1)  # up-slope (towards image top)
+    e2 /= np.linalg.norm(e2)
+    if e2[1] > 0:
+        e2 = -e2
+    origin = np.array([0.0, 0.0, z0])
+    # Base frame of a unit at rest: local z towards the camera side of the slope.
+    base = np.column_stack([e1, np.cross(n_s, e1), n_s])
+
+    rots = np.zeros((n_units, 3, 3))
+    cents = np.zeros((n_units, 3))
+    placed: list[NDArray[np.float64]] = []
+    for u in range(n_units):
+        r, c = divmod(u, ncol)
+        stagger = 0.5 * pitch if r % 2 else 0.0
+        x = (c - (ncol - 1) / 2) * pitch + stagger - 0.25 * pitch
+        y = (r - (nrow - 1) / 2) * pitch * 0.9
+        for _attempt in range(200):
+            centre = origin + (x + rng.uniform(-0.15, 0.15) * pitch) * e1
+            centre = centre + (y + rng.uniform(-0.15, 0.15) * pitch) * e2
+            centre = centre + rng.uniform(-0.1, 0.1) * dn * n_s
+            spin = _rot(n_s, rng.uniform(0, 2 * np.pi))
+            tilt = _rot(rng.normal(size=3), np.radians(rng.uniform(0, 20)))
+            R = tilt @ spin @ base
+            fid = centre + geo.positions_mm @ R.T
+            if not placed or min(
+                float(np.min(np.linalg.norm(q[:, None] - fid[None], axis=2)))
+                for q in placed[-3 * ncol :]
+            ) >= min_gap_mm:
+                break
+        rots[u], cents[u] = R, centre
+        placed.append(fid)
+
+    n_fid = n_units * len(geo.codes)
+    hidden_b = rng.random(n_fid) < hidden_fraction
+    before = _state(geo, rots, cents, hidden_b, max_slant_deg)
+
+    order = rng.permutation(n_units)
+    n_over = int(round(overturned_fraction * n_units))
+    n_move = int(round(moved_fraction * n_units))
+    overturned = np.zeros(n_units, dtype=bool)
+    moved = np.zeros(n_units, dtype=bool)
+    overturned[order[:n_over]] = True
+    moved[order[n_over : n_over + n_move]] = True
+    rots_a, cents_a = rots.copy(), cents.copy()
+    down = -e2
+    for u in np.flatnonzero(moved | overturned).tolist():
+        ang = np.radians(rng.uniform(-60, 60))
+        direction = np.cos(ang) * down + np.sin(ang) * e1
+        if overturned[u]:
+            dist = rng.uniform(0.2, 1.5) * dn
+            turn = _rot(rots[u][:, 0], np.pi)
+        else:
+            dist = rng.uniform(0.1, max_move_dn) * dn
+            turn = _rot(rng.normal(size=3), np.radians(rng.uniform(0, 30)))
+        rots_a[u] = turn @ rots[u]
+        cents_a[u] = cents[u] + dist * direction + rng.uniform(-0.1, 0.1) * dn * n_s
+    hidden_a = rng.random(n_fid) < hidden_fraction
+    after = _state(geo, rots_a, cents_a, hidden_a, max_slant_deg)
+    return Field(geo, cam, before, after, moved, overturned, float(width))

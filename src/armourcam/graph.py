@@ -1,0 +1,632 @@
+"""The ROS 2 graph: node plumbing shared by the three nodes, launching, replay and recording.
+
+With the three ``*/node.py`` modules this is the only module importing rclpy. It holds
+
+- the QoS profiles (:func:`stream_qos`, :func:`latched_qos`) and the parameter declaration helper
+  every node uses (:class:`Param`, :func:`declare_parameters`), and :func:`run_node`, the shared
+  ``main()`` body (rclpy init, spin, clean shutdown on Ctrl-C or external shutdown);
+- launching: :func:`launch_processes` (each node its own process, own process group) and
+  :func:`run_one_process` (all three nodes in one process on one executor);
+- :class:`Replayer` (``armourcam replay``): publishes a bag's images, camera info and hall topics;
+- :class:`Recorder` (``armourcam record``): writes the graph's topics to an MCAP bag.
+
+QoS names used throughout: ``reliable`` (RELIABLE, VOLATILE, KEEP_LAST depth; replay, nothing
+lost while queues keep up) and ``sensor_data`` (BEST_EFFORT, VOLATILE, KEEP_LAST depth; a live
+camera, late frames are dropped rather than queued). Latched outputs are RELIABLE +
+TRANSIENT_LOCAL, depth 1.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+QOS_NAMES = ("reliable", "sensor_data")
+NODE_NAMES = ("fiducial_detector", "pose_estimator", "displacement_matcher")
+
+
+class GraphError(ValueError):
+    """A node's parameters, a launch or a replay request is invalid."""
+
+
+# ---------------------------------------------------------------------- QoS
+
+
+def stream_qos(name: str, depth: int) -> QoSProfile:
+    """QoS of a per-frame stream: ``reliable`` (replay) or ``sensor_data`` (live camera)."""
+    if name not in QOS_NAMES:
+        raise GraphError(f"qos must be one of {QOS_NAMES}, got {name!r}")
+    if depth < 1:
+        raise GraphError(f"queue depth must be >= 1, got {depth}")
+    reliability = (
+        ReliabilityPolicy.RELIABLE if name == "reliable" else ReliabilityPolicy.BEST_EFFORT
+    )
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=reliability,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
+def latched_qos(depth: int = 1) -> QoSProfile:
+    """RELIABLE + TRANSIENT_LOCAL: a late subscriber gets the last ``depth`` messages."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+
+
+def event_qos() -> QoSProfile:
+    """Hall automation inputs: reliable, latched so a late-starting node sees the current state."""
+    return latched_qos(depth=10)
+
+
+# ---------------------------------------------------------------------- parameters
+
+
+@dataclass(frozen=True, slots=True)
+class Param:
+    """A node parameter: name, default (its type fixes the parameter's type), description.
+
+    ``read_only`` parameters are structural (topics, QoS, queue depths): fixed at start-up.
+    ``choices`` restricts a string parameter; ``minimum`` a numeric one.
+    """
+
+    name: str
+    default: Any
+    description: str
+    read_only: bool = True
+    choices: tuple[str, ...] = ()
+    minimum: float | None = None
+
+
+_PTYPE = {
+    bool: ParameterType.PARAMETER_BOOL,
+    int: ParameterType.PARAMETER_INTEGER,
+    float: ParameterType.PARAMETER_DOUBLE,
+    str: ParameterType.PARAMETER_STRING,
+}
+
+
+def declare_parameters(node: Node, params: Sequence[Param]) -> dict[str, Any]:
+    """Declare ``params`` on ``node`` and return their validated values by name.
+
+    Raises
+    ------
+    GraphError
+        A value has the wrong type, is not among the choices or is below the minimum; the
+        message names the node, the parameter and the value.
+    """
+    values: dict[str, Any] = {}
+    for p in params:
+        extra = ""
+        if p.choices:
+            extra = f" One of: {', '.join(p.choices)}."
+        elif p.minimum is not None:
+            extra = f" Minimum: {p.minimum}."
+        desc = ParameterDescriptor(
+            name=p.name,
+            type=_PTYPE[type(p.default)],
+            description=p.description + extra,
+            read_only=p.read_only,
+        )
+        try:
+            value = node.declare_parameter(p.name, p.default, desc).value
+        except Exception as err:  # rclpy raises several types for a mistyped YAML value
+            raise GraphError(f"{node.get_name()}: parameter {p.name}: {err}") from err
+        if isinstance(p.default, float) and isinstance(value, int):
+            value = float(value)
+        if not isinstance(value, type(p.default)):
+            raise GraphError(
+                f"{node.get_name()}: parameter {p.name} must be {type(p.default).__name__}, "
+                f"got {value!r}"
+            )
+        if p.choices and value not in p.choices:
+            raise GraphError(
+                f"{node.get_name()}: parameter {p.name} must be one of {p.choices}, got {value!r}"
+            )
+        if p.minimum is not None and value < p.minimum:
+            raise GraphError(
+                f"{node.get_name()}: parameter {p.name} must be >= {p.minimum}, got {value!r}"
+            )
+        values[p.name] = value
+    return values
+
+
+def param_table(params: Sequence[Param]) -> str:
+    """Markdown table of parameters (for the README)."""
+    rows = [
+        "| parameter | type | default | read-only | description |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for p in params:
+        rows.append(
+            f"| `{p.name}` | {type(p.default).__name__} | `{p.default!r}` | "
+            f"{'yes' if p.read_only else 'no'} | {p.description} |"
+        )
+    return "\n".join(rows)
+
+
+# ---------------------------------------------------------------------- running nodes
+
+
+def stamp_seconds(stamp: Any) -> float:
+    """A ``builtin_interfaces/Time`` as float seconds."""
+    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+
+
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+    """The ``main()`` of every node: init, spin until Ctrl-C or shutdown, clean up.
+
+    A node whose parameters are invalid raises :class:`GraphError` in its constructor; that ends
+    the process with status 2 and a one-line error, before any topic is touched.
+    """
+    rclpy.init(args=list(args) if args is not None else sys.argv)
+    node: Node | None = None
+    status = 0
+    try:
+        node = factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except GraphError as err:
+        print(f"error: {err}", file=sys.stderr)
+        status = 2
+    except RCLError:
+        # SIGTERM shuts the context down under the executor's feet; that is a clean stop.
+        if rclpy.ok():
+            raise
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return status
+
+
+def node_factories() -> dict[str, Callable[[], Node]]:
+    """The three node classes by node name (imported here so the CLI stays light)."""
+    out: dict[str, Callable[[], Node]] = {}
+    for name in NODE_NAMES:
+        module = importlib.import_module(f"{name}.node")
+        out[name] = module.NODE_CLASS
+    return out
+
+
+def run_one_process(
+    params_file: str | None = None, *, multithreaded: bool = True, ros_args: Sequence[str] = ()
+) -> int:
+    """Run all three nodes in this process on one executor until Ctrl-C."""
+    argv = ["armourcam-graph", "--ros-args", *ros_args]
+    if params_file:
+        argv += ["--params-file", str(params_file)]
+    rclpy.init(args=argv)
+    nodes: list[Node] = []
+    executor = MultiThreadedExecutor(num_threads=3) if multithreaded else SingleThreadedExecutor()
+    status = 0
+    try:
+        for factory in node_factories().values():
+            nodes.append(factory())
+        for n in nodes:
+            executor.add_node(n)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except GraphError as err:
+        print(f"error: {err}", file=sys.stderr)
+        status = 2
+    finally:
+        executor.shutdown()
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()
+    return status
+
+
+def node_command(
+    name: str, params_file: str | None = None, ros_args: Sequence[str] = ()
+) -> list[str]:
+    """Command line that starts node ``name`` as its own process with this interpreter."""
+    if name not in NODE_NAMES:
+        raise GraphError(f"unknown node {name!r}; nodes: {NODE_NAMES}")
+    cmd = [sys.executable, "-m", f"{name}.node", "--ros-args"]
+    if params_file:
+        cmd += ["--params-file", str(params_file)]
+    return cmd + list(ros_args)
+
+
+def launch_processes(
+    params_file: str | None = None,
+    *,
+    nodes: Sequence[str] = NODE_NAMES,
+    env: dict[str, str] | None = None,
+    log_dir: Path | None = None,
+    ros_args: Sequence[str] = (),
+) -> dict[str, subprocess.Popen[bytes]]:
+    """Start each node as its own process, each in its own process group.
+
+    Output goes to ``log_dir/<node>.log`` when given (else inherited). Stop them with
+    :func:`stop_processes`.
+    """
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    try:
+        for name in nodes:
+            out: Any = None
+            if log_dir is not None:
+                log_dir.mkdir(parents=True, exist_ok=True)
+                out = open(log_dir / f"{name}.log", "ab")  # noqa: SIM115 - owned by the child
+            procs[name] = subprocess.Popen(
+                node_command(name, params_file, ros_args),
+                env=env if env is not None else os.environ.copy(),
+                stdout=out,
+                stderr=subprocess.STDOUT if out is not None else None,
+                start_new_session=True,
+            )
+            if out is not None:
+                out.close()
+    except BaseException:
+        stop_processes(procs.values())
+        raise
+    return procs
+
+
+def stop_processes(procs: Any, timeout: float = 5.0) -> dict[int, int | None]:
+    """SIGINT each process group, then SIGKILL whatever is left after ``timeout`` seconds."""
+    procs = list(procs)
+    for p in procs:
+        if p.poll() is None:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(p.pid, signal.SIGINT)
+    deadline = time.monotonic() + timeout
+    for p in procs:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            p.wait(max(0.0, deadline - time.monotonic()))
+    for p in procs:
+        # The group may hold children even after the leader exited.
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(p.pid, signal.SIGKILL)
+        if p.poll() is None:
+            p.wait(5.0)
+    return {p.pid: p.returncode for p in procs}
+
+
+# ---------------------------------------------------------------------- message conversion
+
+
+def message_class(msgtype: str) -> Any:
+    """The rclpy message class of a ROS type name (``sensor_msgs/msg/Image`` or ``.../Image``)."""
+    parts = msgtype.split("/")
+    if len(parts) == 2:
+        parts = [parts[0], "msg", parts[1]]
+    if len(parts) != 3:
+        raise GraphError(f"not a message type name: {msgtype!r}")
+    try:
+        module = importlib.import_module(f"{parts[0]}.{parts[1]}")
+        return getattr(module, parts[2])
+    except (ImportError, AttributeError) as err:
+        raise GraphError(f"message type {msgtype} is not available to rclpy: {err}") from err
+
+
+# ---------------------------------------------------------------------- replay
+
+
+@dataclass(frozen=True, slots=True)
+class ReplayStats:
+    """What a replay published."""
+
+    published: dict[str, int]
+    frames: int
+    frames_confirmed: int
+    seconds: float
+
+
+class Replayer:
+    """Publish a bag's messages into the graph.
+
+    Parameters
+    ----------
+    bag : Path
+        ROS 2 bag (MCAP or SQLite directory, or a single ``.mcap``) or ROS 1 ``.bag``.
+    topics : mapping of bag topic -> published topic
+        Which topics to publish, renamed (remapped) as given.
+    qos : {"reliable", "sensor_data"}
+        QoS of the per-frame streams; hall topics are always reliable and latched.
+    rate : float or None
+        Playback speed relative to the recorded time (None with ``confirm_topic``: as fast
+        as consumed).
+    confirm_topic : str or None
+        As-fast-as-consumed: after each image, wait until a message whose header stamp equals
+        the image's arrives on this topic (the detector's output).
+    restamp : bool
+        Set each message's header stamp to its publication time (so that frames and hall
+        events are ordered on one clock); per-frame stamps stay unique.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        *,
+        qos: str = "reliable",
+        depth: int = 100,
+        confirm_topic: str | None = None,
+        confirm_timeout: float = 30.0,
+    ) -> None:
+        from std_msgs.msg import Header  # noqa: F401  (ensures std_msgs is importable early)
+
+        self.node = node
+        self.qos_name = qos
+        self.depth = depth
+        self.confirm_topic = confirm_topic
+        self.confirm_timeout = confirm_timeout
+        self._pubs: dict[str, Any] = {}
+        self._confirmed: set[tuple[int, int]] = set()
+        self._cond = threading.Condition()
+        if confirm_topic:
+            from sensor_msgs.msg import PointCloud2
+
+            node.create_subscription(
+                PointCloud2, confirm_topic, self._on_confirm, stream_qos("reliable", 100)
+            )
+
+    def _on_confirm(self, msg: Any) -> None:
+        with self._cond:
+            self._confirmed.add((msg.header.stamp.sec, msg.header.stamp.nanosec))
+            self._cond.notify_all()
+
+    def publisher(self, topic: str, msgtype: str) -> Any:
+        """The publisher for ``topic`` (created on first use with the right QoS)."""
+        pub = self._pubs.get(topic)
+        if pub is None:
+            cls = message_class(msgtype)
+            if msgtype.startswith("std_msgs/"):
+                qos = event_qos()
+            else:
+                qos = stream_qos(self.qos_name, self.depth)
+            pub = self.node.create_publisher(cls, topic, qos)
+            self._pubs[topic] = pub
+        return pub
+
+    def wait_for_subscribers(self, topics: Sequence[str], timeout: float) -> list[str]:
+        """Wait until each topic's publisher is matched; returns the topics still unmatched."""
+        deadline = time.monotonic() + timeout
+        missing = list(topics)
+        while missing and time.monotonic() < deadline:
+            missing = [t for t in missing if self._pubs[t].get_subscription_count() == 0]
+            if missing:
+                time.sleep(0.05)
+        return missing
+
+    def wait_confirmed(self, stamp: Any) -> bool:
+        """Wait for the consumer's output stamped ``stamp``; False on timeout."""
+        key = (stamp.sec, stamp.nanosec)
+        deadline = time.monotonic() + self.confirm_timeout
+        with self._cond:
+            while key not in self._confirmed:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+            self._confirmed.discard(key)
+        return True
+
+
+def _stamp_now(node: Node, last: list[int]) -> Any:
+    """Current time as a Time message, strictly increasing within this replay."""
+    ns = node.get_clock().now().nanoseconds
+    if ns <= last[0]:
+        ns = last[0] + 1000
+    last[0] = ns
+    from builtin_interfaces.msg import Time
+
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+
+
+def replay_bag(
+    bag: Path,
+    *,
+    remap: dict[str, str],
+    qos: str = "reliable",
+    rate: float | None = 1.0,
+    as_fast_as_consumed: bool = False,
+    confirm_topic: str = "/armourcam/detections",
+    restamp: bool = True,
+    wait_subscribers: float = 10.0,
+    settle_s: float = 0.0,
+    progress: Callable[[int, int], None] | None = None,
+    ros_args: Sequence[str] = (),
+    messages: Callable[[], Iterator[tuple[str, str, int, Any]]] | None = None,
+) -> ReplayStats:
+    """Publish a bag into the graph (the body of ``armourcam replay``).
+
+    Parameters
+    ----------
+    bag : Path
+        The bag; read with :mod:`armourcam.bagio`.
+    remap : dict
+        Bag topic -> published topic. Topics not in it keep their name; a topic mapped to ``""``
+        is skipped.
+    qos, rate, as_fast_as_consumed, confirm_topic
+        See :class:`Replayer`. ``as_fast_as_consumed`` waits for the detector's output stamped like
+        each image before the next message (reliable, lossless by construction).
+    restamp : bool
+        Stamp headers with publication time (see :class:`Replayer`).
+    wait_subscribers : float
+        Seconds to wait for every image/camera-info publisher to be matched before starting.
+    settle_s : float
+        Seconds to keep spinning after the last message (so that reliable queues drain).
+    messages : callable, optional
+        Source of ``(topic, msgtype, time_ns, rosbags_message)`` (default: the bag's messages).
+    """
+    from armourcam import bagio
+
+    if rate is not None and rate <= 0:
+        raise GraphError(f"rate must be > 0, got {rate}")
+    rclpy.init(args=["armourcam-replay", "--ros-args", *ros_args])
+    node = rclpy.create_node("armourcam_replay")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=_spin_quietly, args=(executor,), daemon=True)
+    spinner.start()
+    replayer = Replayer(node, qos=qos, confirm_topic=confirm_topic if as_fast_as_consumed else None)
+    published: dict[str, int] = {}
+    frames = confirmed = 0
+    t_start = time.monotonic()
+    try:
+        items = list(_plan(messages() if messages is not None else _bag_messages(bag), remap))
+        total = len(items)
+        # Create every publisher first and wait for the graph to match them, so that the first
+        # frames are not published into the void.
+        for topic, msgtype, _, _ in items:
+            replayer.publisher(topic, msgtype)
+        waited = [t for t, mt, _, _ in items if not mt.startswith("std_msgs/")]
+        missing = replayer.wait_for_subscribers(sorted(set(waited)), wait_subscribers)
+        if missing:
+            node.get_logger().warning(f"no subscriber yet on {missing}; publishing anyway")
+        last_ns = [0]
+        t0_bag: int | None = None
+        t0_wall = time.monotonic()
+        for i, (topic, msgtype, t_ns, obj) in enumerate(items):
+            if rate is not None and not as_fast_as_consumed:
+                t0_bag = t_ns if t0_bag is None else t0_bag
+                due = t0_wall + (t_ns - t0_bag) / 1e9 / rate
+                delay = due - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            msg = bagio.copy_message(obj, message_class(msgtype))
+            if restamp and hasattr(msg, "header"):
+                msg.header.stamp = _stamp_now(node, last_ns)
+            replayer.publisher(topic, msgtype).publish(msg)
+            published[topic] = published.get(topic, 0) + 1
+            if msgtype in IMAGE_TYPES:
+                frames += 1
+                if as_fast_as_consumed:
+                    if replayer.wait_confirmed(msg.header.stamp):
+                        confirmed += 1
+                    else:
+                        node.get_logger().error(
+                            f"no output on {confirm_topic} for frame {frames} within "
+                            f"{replayer.confirm_timeout:.0f} s"
+                        )
+            if progress is not None:
+                progress(i + 1, total)
+        if settle_s > 0:
+            time.sleep(settle_s)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        spinner.join(2.0)
+    return ReplayStats(published, frames, confirmed, time.monotonic() - t_start)
+
+
+def _bag_messages(bag: Path) -> Iterator[tuple[str, str, int, Any]]:
+    from armourcam import bagio
+
+    with bagio.open_bag(bag) as b:
+        if b.message_count == 0:
+            raise GraphError(f"{bag}: the bag holds no messages")
+        for m in b.messages(on_truncation="report"):
+            yield m.topic, m.msgtype, m.timestamp_ns, m.message
+        if b.truncation is not None:
+            print(f"armourcam replay: {b.truncation.describe()}", file=sys.stderr)
+
+
+def _spin_quietly(executor: Any) -> None:
+    with contextlib.suppress(ExternalShutdownException, KeyboardInterrupt, Exception):
+        executor.spin()
+
+
+def _plan(
+    messages: Iterator[tuple[str, str, int, Any]], remap: dict[str, str]
+) -> Iterator[tuple[str, str, int, Any]]:
+    for topic, msgtype, t_ns, obj in messages:
+        target = remap.get(topic, topic)
+        if target:
+            yield target, msgtype, t_ns, obj
+
+
+# ---------------------------------------------------------------------- record
+
+
+def record_topics(
+    out: Path,
+    topics: Sequence[str],
+    *,
+    duration: float | None = None,
+    stop: threading.Event | None = None,
+    ros_args: Sequence[str] = (),
+) -> dict[str, int]:
+    """Record ``topics`` (types discovered from the graph) into an MCAP bag until stopped.
+
+    Messages are stored as received (CDR, no deserialisation). Latched topics are subscribed
+    TRANSIENT_LOCAL so their last message is recorded even if published before the recorder
+    started. Returns message counts per topic.
+    """
+    from armourcam import bagio
+
+    rclpy.init(args=["armourcam-record", "--ros-args", *ros_args])
+    node = rclpy.create_node("armourcam_record")
+    counts: dict[str, int] = dict.fromkeys(topics, 0)
+    lock = threading.Lock()
+    stop = stop or threading.Event()
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        with bagio.BagWriter(out) as writer:
+            pending = set(topics)
+            t_end = None if duration is None else time.monotonic() + duration
+            while not stop.is_set():
+                if pending:
+                    types = dict(node.get_topic_names_and_types())
+                    for topic in sorted(pending):
+                        if topic not in types:
+                            continue
+                        msgtype = types[topic][0]
+                        latched = any(
+                            i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                            for i in node.get_publishers_info_by_topic(topic)
+                        )
+                        qos = latched_qos(10) if latched else stream_qos("reliable", 100)
+                        writer.add_topic(topic, msgtype, latched=latched)
+
+                        def cb(raw: bytes, topic: str = topic, msgtype: str = msgtype) -> None:
+                            # Stored via the bag's typestore: CDR in, CDR out.
+                            obj = writer.typestore.deserialize_cdr(raw, msgtype)
+                            with lock:
+                                writer.write(topic, msgtype, obj, time.time_ns())
+                                counts[topic] += 1
+
+                        node.create_subscription(message_class(msgtype), topic, cb, qos, raw=True)
+                        pending.discard(topic)
+                executor.spin_once(timeout_sec=0.1)
+                if t_end is not None and time.monotonic() > t_end:
+                    break
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return counts

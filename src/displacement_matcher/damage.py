@@ -1,0 +1,161 @@
+"""Damage numbers of a run: displaced, moved, overturned and lost units, and N_od.
+
+A unit is *displaced* when its reference point moved at least the displacement threshold
+(default one nominal unit size Dn, the usual criterion for armour-unit damage counts), *moved* when
+it moved at least the movement threshold but less than that; overturned units and, by default,
+units seen before but not found after count as displaced. ``N_od`` is the number of displaced
+units per strip of width Dn across the section (``displaced * Dn / section width``). Every summary
+carries its thresholds in millimetres so the numbers are never printed without them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+from .errors import MatcherError
+from .types import DamageSummary, DamageThresholds, UnitMotion
+
+DEFAULT_MOVED_MM = 2.0
+
+
+def thresholds(
+    dn_mm: float,
+    *,
+    displaced_mm: float | None = None,
+    displaced_dn: float | None = None,
+    moved_mm: float = DEFAULT_MOVED_MM,
+    overturn_deg: float = 90.0,
+    overturned_displaced: bool = True,
+    lost_displaced: bool = True,
+) -> DamageThresholds:
+    """Damage thresholds; the displacement threshold in mm or in Dn (default 1 Dn).
+
+    Raises
+    ------
+    MatcherError
+        For a non-positive Dn or threshold, or both ``displaced_mm`` and ``displaced_dn``.
+    """
+    if not (math.isfinite(dn_mm) and dn_mm > 0):
+        raise MatcherError(f"Dn must be a positive length in mm, got {dn_mm!r}")
+    if displaced_mm is not None and displaced_dn is not None:
+        raise MatcherError("give the displacement threshold in mm or in Dn, not both")
+    limit = dn_mm * (1.0 if displaced_dn is None else displaced_dn)
+    if displaced_mm is not None:
+        limit = displaced_mm
+    if not (math.isfinite(limit) and limit > 0):
+        raise MatcherError(f"displacement threshold must be positive, got {limit!r} mm")
+    if not (math.isfinite(moved_mm) and 0 < moved_mm <= limit):
+        raise MatcherError(
+            f"movement threshold must be in (0, {limit:g}] mm (the displacement threshold), "
+            f"got {moved_mm!r}"
+        )
+    if not 0 < overturn_deg <= 180:
+        raise MatcherError(f"overturn angle must be in (0, 180] deg, got {overturn_deg!r}")
+    return DamageThresholds(
+        float(dn_mm),
+        float(limit),
+        float(moved_mm),
+        float(overturn_deg),
+        overturned_displaced,
+        lost_displaced,
+    )
+
+
+def classify(unit: UnitMotion, t: DamageThresholds) -> str:
+    """Status of one unit: ``still``, ``moved``, ``displaced``, ``overturned``, ``lost``, ``unseen``."""
+    if unit.status == "unseen" or (not unit.baseline_indices):
+        return "unseen"
+    overturned = unit.overturned or (
+        unit.rotation_deg is not None and unit.rotation_deg >= t.overturn_deg
+    )
+    if overturned:
+        return "overturned"
+    dist = unit.distance_mm
+    if unit.method == "none" or not math.isfinite(dist):
+        return "lost"
+    if dist >= t.displaced_mm:
+        return "displaced"
+    if dist >= t.moved_mm:
+        return "moved"
+    return "still"
+
+
+def assess(
+    units: Sequence[UnitMotion],
+    t: DamageThresholds,
+    *,
+    section_width_mm: float | None = None,
+) -> tuple[tuple[UnitMotion, ...], DamageSummary]:
+    """Classify every unit and count the damage.
+
+    Parameters
+    ----------
+    units : sequence of UnitMotion
+        From :func:`displacement_matcher.units.unit_motions`.
+    t : DamageThresholds
+    section_width_mm : float, optional
+        Width of the section along the crest; gives ``N_od``.
+
+    Returns
+    -------
+    units : tuple of UnitMotion
+        The same units with ``status`` filled in.
+    summary : DamageSummary
+    """
+    if section_width_mm is not None and not (
+        math.isfinite(section_width_mm) and section_width_mm > 0
+    ):
+        raise MatcherError(f"section width must be a positive length, got {section_width_mm!r}")
+    out = tuple(dataclasses.replace(u, status=classify(u, t)) for u in units)
+    seen = [u for u in out if u.status != "unseen"]
+    ids = {s: tuple(u.unit for u in seen if u.status == s) for s in
+           ("displaced", "moved", "overturned", "lost", "still")}  # fmt: skip
+    displaced = list(ids["displaced"])
+    if t.overturned_displaced:
+        displaced += ids["overturned"]
+    if t.lost_displaced:
+        displaced += ids["lost"]
+    n = len(seen)
+    n_disp = len(displaced)
+    summary = DamageSummary(
+        n_units=n,
+        displaced_units=n_disp,
+        moved_units=len(ids["moved"]),
+        overturned_units=len(ids["overturned"]),
+        lost_units=len(ids["lost"]),
+        still_units=len(ids["still"]),
+        percent_displaced=100.0 * n_disp / n if n else 0.0,
+        n_od=None if section_width_mm is None else n_disp * t.dn_mm / section_width_mm,
+        section_width_mm=section_width_mm,
+        thresholds=t,
+        displaced_ids=tuple(sorted(displaced)),
+        moved_ids=ids["moved"],
+        overturned_ids=ids["overturned"],
+        lost_ids=ids["lost"],
+    )
+    return out, summary
+
+
+def cumulative(runs: Sequence[DamageSummary]) -> dict[str, object]:
+    """Damage per run and accumulated over runs that are each measured against the baseline.
+
+    Each run's summary is already cumulative when measured against the first baseline; this adds
+    the per-run increments (units newly displaced in each run).
+    """
+    seen: set[str] = set()
+    rows = []
+    for k, s in enumerate(runs):
+        new = sorted(set(s.displaced_ids) - seen)
+        seen |= set(s.displaced_ids)
+        rows.append(
+            {
+                "run": k,
+                "displaced_units": s.displaced_units,
+                "newly_displaced": len(new),
+                "percent_displaced": s.percent_displaced,
+                "n_od": s.n_od,
+            }
+        )
+    return {"runs": rows, "ever_displaced": len(seen), "ever_displaced_ids": sorted(seen)}

@@ -1,0 +1,117 @@
+"""One comparison as the graph publishes it: report dict, marker specs and displacement rows.
+
+Pure glue between the matcher's cores (:func:`displacement_matcher.match`, units, damage and
+report modules) and the outputs of the ``displacement_matcher`` node and ``armourcam analyze``:
+
+- the report dict (the keys of ``armourcam compare --json``),
+- :class:`~displacement_matcher.session.MarkerSpec` arrows (green same-code, red cross-code, the
+  paper's Figure 8 colours) and unit labels, in the camera frame (mm),
+- ``DisplacementRecord`` rows (field names of ``msg/DisplacementRecord.msg``).
+
+No message library is imported here; the node and the bag writer turn specs into MarkerArrays.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from pose_estimator.types import FiducialPose
+
+from .match import match
+from .session import Comparison, MarkerSpec
+from .types import Displacement, MatchResult
+
+_LABEL_CODE = {"same_code": 0, "cross_code": 1, "vanished": 2, "appeared": 3}
+
+
+def _vec(v: Any) -> list[float]:
+    if v is None:
+        return [math.nan] * 3
+    return [float(x) for x in np.asarray(v, dtype=np.float64).reshape(3)]
+
+
+def displacement_rows(
+    result: MatchResult, unit_of: dict[tuple[str, int], int] | None = None
+) -> list[dict[str, Any]]:
+    """``DisplacementRecord`` rows of a match result (NaN / -1 on the missing side)."""
+    rows: list[dict[str, Any]] = []
+    unit_of = unit_of or {}
+    for d in result.displacements:
+        disp = d.displacement_mm
+        cov = np.full(6, math.nan)
+        if d.is_match and d.baseline_index is not None and d.current_index is not None:
+            c = np.asarray(result.baseline[d.baseline_index].covariance_mm2) + np.asarray(
+                result.current[d.current_index].covariance_mm2
+            )
+            cov = c[np.triu_indices(3)]
+        unit = -1
+        if d.baseline_index is not None:
+            unit = unit_of.get(("b", d.baseline_index), -1)
+        rows.append(
+            {
+                "before_mm": _vec(d.before_mm),
+                "after_mm": _vec(d.after_mm),
+                "displacement_mm": _vec(disp),
+                "displacement_covariance": [float(x) for x in cov],
+                "distance_mm": d.distance_mm if d.distance_mm is not None else math.nan,
+                "cost": float(d.cost) if d.is_match else math.nan,
+                "code_before": -1 if d.code_before is None else int(d.code_before),
+                "code_after": -1 if d.code_after is None else int(d.code_after),
+                "index_before": -1 if d.baseline_index is None else int(d.baseline_index),
+                "index_after": -1 if d.current_index is None else int(d.current_index),
+                "unit": unit,
+                "label": _LABEL_CODE[d.label],
+            }
+        )
+    return rows
+
+
+def arrow_specs(displacements: Sequence[Displacement]) -> list[MarkerSpec]:
+    """Arrows baseline -> current for every matched pair (green same-code, red cross-code)."""
+    out: list[MarkerSpec] = []
+    for d in displacements:
+        if not d.is_match or d.before_mm is None or d.after_mm is None:
+            continue
+        b, a = _vec(d.before_mm), _vec(d.after_mm)
+        out.append(
+            MarkerSpec("arrow", (b[0], b[1], b[2]), (a[0], a[1], a[2]), d.label == "same_code")
+        )
+    return out
+
+
+def fiducial_entries(result: MatchResult) -> list[dict[str, Any]]:
+    """The ``fiducials`` list of the report (compare --json keys)."""
+    out = []
+    for d in result.displacements:
+        out.append(
+            {
+                "label": d.label,
+                "code_before": d.code_before,
+                "code_after": d.code_after,
+                "before_mm": None if d.before_mm is None else _vec(d.before_mm),
+                "after_mm": None if d.after_mm is None else _vec(d.after_mm),
+                "displacement_mm": None if d.displacement_mm is None else _vec(d.displacement_mm),
+            }
+        )
+    return out
+
+
+def compare(before: Sequence[FiducialPose], after: Sequence[FiducialPose]) -> Comparison:
+    """Match ``after`` against ``before``; report, markers and displacement rows."""
+    result = match(list(before), list(after))
+    counts = result.counts()
+    report: dict[str, Any] = {
+        "fiducials": fiducial_entries(result),
+        "units": [],
+        "summary": {
+            "n_before": len(before),
+            "n_after": len(after),
+            **{f"n_{k}": v for k, v in counts.items()},
+        },
+    }
+    markers = arrow_specs(result.displacements)
+    return Comparison(report, tuple(markers), tuple(displacement_rows(result)))

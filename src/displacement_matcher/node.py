@@ -1,0 +1,357 @@
+"""ROS 2 node ``displacement_matcher``: holds the baseline, measures every wave run, reports.
+
+A thin shell around :class:`displacement_matcher.session.Session` (the hall-automation state
+machine: baseline on command or automatically, wait for the scene to settle after a run, fuse,
+match against the baseline and the previous run; paper sections 2.2, 3 steps 5-6 and 5). State
+is kept in ``data_dir`` (atomic writes) and a restarted node resumes from it and republishes the
+last run's latched outputs.
+
+Topics
+------
+Subscribed
+    ``poses_topic`` (default ``/armourcam/poses``), ``sensor_msgs/PointCloud2`` of
+    ``FiducialPoseRecord`` rows, QoS per ``qos`` (``reliable`` / ``sensor_data``), KEEP_LAST
+    ``queue_depth``.
+    ``run_active_topic`` (default ``/hall/run_active``), ``std_msgs/Bool``;
+    ``run_id_topic`` (default ``/hall/run_id``), ``std_msgs/String``;
+    ``capture_baseline_topic`` (default ``/armourcam/capture_baseline``), ``std_msgs/Empty``.
+    Hall inputs: RELIABLE + TRANSIENT_LOCAL, depth 10 (a restarted node sees the hall's
+    latched state; volatile publishers match as well).
+Published (latched: RELIABLE + TRANSIENT_LOCAL, depth 1, so a late subscriber gets the last run)
+    ``markers_topic`` (default ``/armourcam/markers``), ``visualization_msgs/MarkerArray``:
+    arrows baseline -> current in **metres** (REP 103), green for same-code, red for cross-code
+    matches, and a text label per unit (id and displacement in mm); namespace ``armourcam``,
+    frame the camera's.
+    ``displacements_topic`` (default ``/armourcam/displacements``), ``sensor_msgs/PointCloud2``
+    of ``DisplacementRecord`` rows (cumulative, mm).
+    ``report_topic`` (default ``/armourcam/report``), ``std_msgs/String``: the run report as
+    JSON (the keys of ``armourcam compare --json`` plus ``run_id``, ``sequence``, ``settled``,
+    ``frames_fused``, ``incremental``).
+    ``baseline_topic`` (default ``/armourcam/baseline``), ``sensor_msgs/PointCloud2`` of the
+    fused baseline's ``FiducialPoseRecord`` rows.
+    ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray`` (reliable, volatile) every
+    ``diagnostics_period_s`` and on every state change: phase, run, baseline, counts.
+
+Parameters: see :data:`PARAMS`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Bool, Empty, Header, String
+from visualization_msgs.msg import Marker, MarkerArray
+
+from armourcam import records
+from armourcam.graph import (
+    GraphError,
+    Param,
+    declare_parameters,
+    event_qos,
+    latched_qos,
+    run_node,
+    stamp_seconds,
+    stream_qos,
+)
+
+from .session import (
+    BaselineCaptured,
+    Event,
+    MarkerSpec,
+    Notice,
+    Phase,
+    RunCompleted,
+    RunRecord,
+    Session,
+    SessionConfig,
+    SessionError,
+)
+
+PARAMS = (
+    Param("poses_topic", "/armourcam/poses", "Input: per-frame FiducialPoseRecord rows."),
+    Param("run_active_topic", "/hall/run_active", "Input: hall run state (std_msgs/Bool)."),
+    Param("run_id_topic", "/hall/run_id", "Input: hall run id (std_msgs/String)."),
+    Param(
+        "capture_baseline_topic",
+        "/armourcam/capture_baseline",
+        "Input: capture-baseline command (std_msgs/Empty).",
+    ),
+    Param("markers_topic", "/armourcam/markers", "Output (latched): MarkerArray, metres."),
+    Param(
+        "displacements_topic",
+        "/armourcam/displacements",
+        "Output (latched): DisplacementRecord rows (PointCloud2), mm.",
+    ),
+    Param("report_topic", "/armourcam/report", "Output (latched): run report JSON (String)."),
+    Param("baseline_topic", "/armourcam/baseline", "Output (latched): baseline pose rows."),
+    Param(
+        "qos",
+        "reliable",
+        "QoS of the pose input: reliable for replay, sensor_data for a live camera.",
+        choices=("reliable", "sensor_data"),
+    ),
+    Param("queue_depth", 10, "KEEP_LAST depth of the pose input.", minimum=1),
+    Param(
+        "data_dir",
+        "armourcam_data",
+        "Directory keeping the baseline and every run's report (resumed on restart).",
+    ),
+    Param("baseline_frames", 5, "Settled frames fused into the baseline.", minimum=1),
+    Param("settle_frames", 3, "Consecutive settled frames required after a run.", minimum=1),
+    Param(
+        "settle_tolerance_mm",
+        0.5,
+        "Largest frame-to-frame fiducial movement of a settled scene, mm.",
+        minimum=1e-6,
+    ),
+    Param(
+        "settle_fraction",
+        0.9,
+        "Fraction of fiducials that must agree between consecutive frames.",
+        minimum=1e-6,
+    ),
+    Param(
+        "settle_timeout_frames",
+        50,
+        "Frames after a run after which the scene is taken as it is (report says settled=false).",
+        minimum=1,
+    ),
+    Param("auto_baseline", True, "Capture the baseline automatically before the first run."),
+    Param("frame_id", "", "frame_id of the outputs when no pose frame was seen (default: none)."),
+    Param("diagnostics_period_s", 1.0, "Period of /diagnostics, s.", minimum=0.1),
+)
+
+
+@dataclass(frozen=True, slots=True)
+class MatcherNodeConfig:
+    """Validated parameters of the node (see :data:`PARAMS`)."""
+
+    poses_topic: str
+    run_active_topic: str
+    run_id_topic: str
+    capture_baseline_topic: str
+    markers_topic: str
+    displacements_topic: str
+    report_topic: str
+    baseline_topic: str
+    qos: str
+    queue_depth: int
+    data_dir: str
+    baseline_frames: int
+    settle_frames: int
+    settle_tolerance_mm: float
+    settle_fraction: float
+    settle_timeout_frames: int
+    auto_baseline: bool
+    frame_id: str
+    diagnostics_period_s: float
+
+    def session_config(self) -> SessionConfig:
+        """The state machine's settings."""
+        return SessionConfig(
+            baseline_frames=self.baseline_frames,
+            settle_frames=self.settle_frames,
+            settle_tolerance_mm=self.settle_tolerance_mm,
+            settle_fraction=self.settle_fraction,
+            settle_timeout_frames=self.settle_timeout_frames,
+            auto_baseline=self.auto_baseline,
+            data_dir=Path(self.data_dir) if self.data_dir else None,
+        )
+
+
+_GREEN = (0.1, 0.85, 0.2)
+_RED = (0.95, 0.1, 0.1)
+
+
+def marker_array(header: Header, specs: tuple[MarkerSpec, ...]) -> MarkerArray:
+    """MarkerArray (metres) of marker specs (mm); starts with a DELETEALL so old arrows vanish."""
+    out = MarkerArray()
+    clear = Marker(header=header, ns="armourcam", id=0, action=Marker.DELETEALL)
+    out.markers.append(clear)
+    for i, spec in enumerate(specs, start=1):
+        m = Marker(header=header, ns="armourcam", id=i, action=Marker.ADD)
+        m.pose.orientation.w = 1.0
+        if spec.kind == "arrow":
+            from geometry_msgs.msg import Point
+
+            m.type = Marker.ARROW
+            m.points = [
+                Point(x=spec.start_mm[0] / 1e3, y=spec.start_mm[1] / 1e3, z=spec.start_mm[2] / 1e3),
+                Point(x=spec.end_mm[0] / 1e3, y=spec.end_mm[1] / 1e3, z=spec.end_mm[2] / 1e3),
+            ]
+            m.scale.x, m.scale.y, m.scale.z = 0.0006, 0.0012, 0.0015  # shaft, head dia, head len
+            r, g, b = _GREEN if spec.same_code else _RED
+        else:
+            m.type = Marker.TEXT_VIEW_FACING
+            m.pose.position.x = spec.start_mm[0] / 1e3
+            m.pose.position.y = spec.start_mm[1] / 1e3
+            m.pose.position.z = spec.start_mm[2] / 1e3
+            m.scale.z = 0.006
+            m.text = spec.text
+            r, g, b = (1.0, 1.0, 1.0)
+        m.color.r, m.color.g, m.color.b, m.color.a = r, g, b, 1.0
+        out.markers.append(m)
+    return out
+
+
+class DisplacementMatcherNode(Node):
+    """Poses and hall events in; latched report, markers and displacements out."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("displacement_matcher", **kwargs)
+        self.config = MatcherNodeConfig(**declare_parameters(self, PARAMS))
+        cfg = self.config
+        try:
+            self.session = Session(cfg.session_config())
+        except SessionError as err:
+            raise GraphError(f"displacement_matcher: {err}") from err
+        self._frame_id = cfg.frame_id
+        latched = latched_qos()
+        self._pub_markers = self.create_publisher(MarkerArray, cfg.markers_topic, latched)
+        self._pub_disp = self.create_publisher(PointCloud2, cfg.displacements_topic, latched)
+        self._pub_report = self.create_publisher(String, cfg.report_topic, latched)
+        self._pub_baseline = self.create_publisher(PointCloud2, cfg.baseline_topic, latched)
+        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        qos = stream_qos(cfg.qos, cfg.queue_depth)
+        self.create_subscription(PointCloud2, cfg.poses_topic, self._on_poses, qos)
+        self.create_subscription(Bool, cfg.run_active_topic, self._on_run_active, event_qos())
+        self.create_subscription(String, cfg.run_id_topic, self._on_run_id, event_qos())
+        self.create_subscription(Empty, cfg.capture_baseline_topic, self._on_capture, event_qos())
+        self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
+        self.last_error = ""
+        s = self.session
+        if s.baseline is not None:
+            self.get_logger().info(
+                f"resumed from {cfg.data_dir}: baseline of {len(s.baseline.poses)} fiducials, "
+                f"{len(s.runs)} runs"
+            )
+            self._publish_baseline()
+        if s.runs:
+            self._publish_run(s.runs[-1])
+        self._publish_diagnostics()
+
+    # ------------------------------------------------------------------ callbacks
+
+    def _on_poses(self, msg: PointCloud2) -> None:
+        try:
+            poses = records.records_to_poses(records.from_pointcloud2(msg, records.POSE))
+        except Exception as err:  # a malformed frame must not take the node down
+            self.session.frames_dropped += 1
+            self.last_error = f"pose frame dropped: {err}"
+            self.get_logger().error(self.last_error)
+            return
+        if msg.header.frame_id:
+            self._frame_id = msg.header.frame_id
+        self._handle(self.session.add_frame(poses, stamp_seconds(msg.header.stamp)))
+
+    def _on_run_active(self, msg: Bool) -> None:
+        now = self.get_clock().now().nanoseconds * 1e-9
+        self._handle(self.session.set_run_active(bool(msg.data), now))
+
+    def _on_run_id(self, msg: String) -> None:
+        self._handle(self.session.set_run_id(msg.data))
+
+    def _on_capture(self, _msg: Empty) -> None:
+        self._handle(self.session.capture_baseline())
+
+    # ------------------------------------------------------------------ outputs
+
+    def _handle(self, events: list[Event]) -> None:
+        log = self.get_logger()
+        changed = False
+        for ev in events:
+            changed = True
+            if isinstance(ev, Notice):
+                # One call site per severity: rclpy's logger refuses a severity change per site.
+                if ev.level == "error":
+                    log.error(ev.text)
+                    self.last_error = ev.text
+                elif ev.level == "warn":
+                    log.warning(ev.text)
+                else:
+                    log.info(ev.text)
+            elif isinstance(ev, BaselineCaptured):
+                b = ev.baseline
+                log.info(
+                    f"baseline ({b.reason}): {len(b.poses)} fiducials fused over "
+                    f"{b.n_frames} frames"
+                )
+                self._publish_baseline()
+            elif isinstance(ev, RunCompleted):
+                summary = ev.run.report.get("summary", {})
+                log.info(f"run {ev.run.run_id} measured: {json.dumps(summary)[:300]}")
+                self._publish_run(ev.run)
+        if changed:
+            self._publish_diagnostics()
+
+    def _header(self) -> Header:
+        h = Header(frame_id=self._frame_id)
+        h.stamp = self.get_clock().now().to_msg()
+        return h
+
+    def _publish_baseline(self) -> None:
+        b = self.session.baseline
+        if b is None:
+            return
+        rows = records.poses_to_records(list(b.poses))
+        self._pub_baseline.publish(
+            records.to_pointcloud2(PointCloud2, PointField, self._header(), records.POSE, rows)
+        )
+
+    def _publish_run(self, run: RunRecord) -> None:
+        header = self._header()
+        self._pub_markers.publish(marker_array(header, run.markers))
+        cloud_rows = records.rows_to_records(records.DISPLACEMENT, run.rows)
+        self._pub_disp.publish(
+            records.to_pointcloud2(
+                PointCloud2, PointField, header, records.DISPLACEMENT, cloud_rows
+            )
+        )
+        self._pub_report.publish(String(data=json.dumps(run.report, default=_json_default)))
+
+    def _publish_diagnostics(self) -> None:
+        st = self.session.status()
+        phase = self.session.phase
+        level = DiagnosticStatus.OK
+        if self.last_error:
+            level = DiagnosticStatus.ERROR
+        elif phase in (Phase.WAITING_BASELINE, Phase.CAPTURING_BASELINE):
+            level = DiagnosticStatus.WARN
+        status = DiagnosticStatus(
+            level=level,
+            name="armourcam: displacement_matcher",
+            message=self.last_error or f"{phase.value}",
+            hardware_id="armourcam",
+            values=[KeyValue(key=k, value=v) for k, v in st.items()],
+        )
+        arr = DiagnosticArray(status=[status])
+        arr.header.stamp = self.get_clock().now().to_msg()
+        self._pub_diag.publish(arr)
+
+
+def _json_default(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, float) and math.isnan(obj):
+        return None
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+NODE_CLASS = DisplacementMatcherNode
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script ``displacement_matcher``."""
+    return run_node(DisplacementMatcherNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,647 @@
+"""The hall-automation state machine of the displacement matcher (pure: no rclpy, no DDS).
+
+A monitoring session between wave runs, as a lab runs it:
+
+1. **Baseline.** Captured on command (:meth:`Session.capture_baseline`) or automatically before the
+   first run: once ``baseline_frames`` consecutive frames agree (the scene is settled), their pose
+   sets are fused (:func:`pose_estimator.fuse`, a covariance-weighted average) into the baseline.
+2. **Run.** The hall announces a run id (``/hall/run_id``) and the run state (``/hall/run_active``).
+   While a run is active the scene moves and frames are ignored.
+3. **Settling.** When the run stops, frames are collected until ``settle_frames`` consecutive
+   frames agree within ``settle_tolerance_mm`` (or ``settle_timeout_frames`` pass; the report then
+   says ``"settled": false``); those frames are fused into the after-run pose set.
+4. **Report.** The after-run set is matched against the baseline (cumulative displacement, paper
+   sections 2.2 and 3 steps 5-6) and against the previous run's set (incremental); the report is
+   tagged with the run id.
+
+Nothing is lost: the baseline and every run (its fused poses and its report) are written
+atomically (temporary file + ``os.replace``) to ``data_dir``; a new :class:`Session` on the same
+directory resumes with them.
+
+Frames are pose sets in the camera frame (millimetres, OpenCV axes) as produced by
+:func:`pose_estimator.estimate`; times are seconds (ROS header stamps).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import enum
+import json
+import os
+import re
+import tempfile
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from pose_estimator.types import FiducialPose
+
+FORMAT_VERSION = 1
+
+Fuser = Callable[[Sequence[Sequence[FiducialPose]]], list[FiducialPose]]
+Comparer = Callable[[Sequence[FiducialPose], Sequence[FiducialPose]], "Comparison"]
+
+
+class SessionError(ValueError):
+    """A session input or the data directory is malformed."""
+
+
+class Phase(enum.Enum):
+    """Where the session is in the hall's cycle."""
+
+    WAITING_BASELINE = "waiting_baseline"  # no baseline yet; watching for a settled scene
+    CAPTURING_BASELINE = "capturing_baseline"  # baseline commanded; collecting settled frames
+    MONITORING = "monitoring"  # baseline held, no run active
+    RUN_ACTIVE = "run_active"  # waves running; frames ignored
+    SETTLING = "settling"  # run stopped; waiting for the scene to settle
+
+
+@dataclass(frozen=True, slots=True)
+class SessionConfig:
+    """Settings of the state machine.
+
+    Attributes
+    ----------
+    baseline_frames : int
+        Consecutive settled frames fused into the baseline.
+    settle_frames : int
+        Consecutive settled frames required after a run (and fused into its pose set).
+    settle_tolerance_mm : float
+        Largest frame-to-frame movement of a fiducial for the scene to count as settled, mm.
+    settle_fraction : float
+        Fraction of fiducials that must agree between consecutive frames (occlusions, glints).
+    settle_timeout_frames : int
+        After this many frames without settling, the last ``settle_frames`` are used anyway.
+    auto_baseline : bool
+        Capture the baseline automatically before the first run.
+    data_dir : Path or None
+        Where the baseline and the runs are kept (None: memory only).
+    """
+
+    baseline_frames: int = 5
+    settle_frames: int = 3
+    settle_tolerance_mm: float = 0.5
+    settle_fraction: float = 0.9
+    settle_timeout_frames: int = 50
+    auto_baseline: bool = True
+    data_dir: Path | None = None
+
+    def __post_init__(self) -> None:
+        if self.baseline_frames < 1 or self.settle_frames < 1:
+            raise SessionError(
+                f"baseline_frames and settle_frames must be >= 1, got "
+                f"{self.baseline_frames} and {self.settle_frames}"
+            )
+        if not self.settle_tolerance_mm > 0:
+            raise SessionError(f"settle_tolerance_mm must be > 0, got {self.settle_tolerance_mm}")
+        if not 0.0 < self.settle_fraction <= 1.0:
+            raise SessionError(f"settle_fraction must be in (0, 1], got {self.settle_fraction}")
+        if self.settle_timeout_frames < self.settle_frames:
+            raise SessionError(
+                f"settle_timeout_frames ({self.settle_timeout_frames}) must be >= "
+                f"settle_frames ({self.settle_frames})"
+            )
+
+
+@dataclass(frozen=True, slots=True)
+class MarkerSpec:
+    """One displacement marker, independent of any message library.
+
+    Attributes
+    ----------
+    kind : {"arrow", "label"}
+    start_mm, end_mm : (float, float, float)
+        Camera-frame points, mm (for a label both are its position).
+    same_code : bool
+        Arrow between fiducials of the same code (green) or of different codes (red).
+    text : str
+        Label text (unit id and its displacement), empty for arrows.
+    """
+
+    kind: str
+    start_mm: tuple[float, float, float]
+    end_mm: tuple[float, float, float]
+    same_code: bool = True
+    text: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Comparison:
+    """Outcome of comparing two pose sets: the report dict and its markers."""
+
+    report: dict[str, Any]
+    markers: tuple[MarkerSpec, ...]
+    rows: tuple[dict[str, Any], ...] = ()
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Baseline:
+    """The fused reference pose set all runs are measured against.
+
+    Attributes
+    ----------
+    poses : tuple of FiducialPose
+        Fused poses (camera frame, mm).
+    n_frames : int
+        Frames fused.
+    stamp_s : float
+        Header time of the last frame fused, seconds.
+    reason : str
+        ``"command"`` or ``"auto"``.
+    """
+
+    poses: tuple[FiducialPose, ...]
+    n_frames: int
+    stamp_s: float
+    reason: str
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class RunRecord:
+    """One completed wave run.
+
+    Attributes
+    ----------
+    run_id : str
+        The hall's id for the run (or ``run-NNN`` when none was announced).
+    sequence : int
+        1-based position among the session's runs.
+    poses : tuple of FiducialPose
+        The fused settled after-run pose set.
+    report : dict
+        JSON-ready report: the keys of ``armourcam compare --json`` (cumulative, against the
+        baseline) plus ``run_id``, ``sequence``, ``settled``, ``frames_fused``, ``stamp_s`` and
+        ``incremental`` (the report against the previous run, or None for the first run).
+    markers : tuple of MarkerSpec
+        Markers of the cumulative displacement.
+    rows : tuple of dict
+        ``DisplacementRecord`` rows (``msg/DisplacementRecord.msg`` field names) of the
+        cumulative displacement.
+    """
+
+    run_id: str
+    sequence: int
+    poses: tuple[FiducialPose, ...]
+    report: dict[str, Any]
+    markers: tuple[MarkerSpec, ...]
+    rows: tuple[dict[str, Any], ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class BaselineCaptured:
+    """Event: a new baseline is held."""
+
+    baseline: Baseline
+
+
+@dataclass(frozen=True, slots=True)
+class RunCompleted:
+    """Event: a run was measured; its report and markers are ready to publish."""
+
+    run: RunRecord
+
+
+@dataclass(frozen=True, slots=True)
+class Notice:
+    """Event: something the operator should see in the log (``level`` "info"/"warn"/"error")."""
+
+    level: str
+    text: str
+
+
+Event = BaselineCaptured | RunCompleted | Notice
+
+
+@dataclass(slots=True)
+class _Window:
+    """The last frames, with the count of consecutive settled frame pairs at its end."""
+
+    maxlen: int
+    frames: deque[tuple[tuple[FiducialPose, ...], float]] = field(default_factory=deque)
+    stable_run: int = 0
+
+    def clear(self) -> None:
+        self.frames.clear()
+        self.stable_run = 0
+
+
+def frames_agree(
+    a: Sequence[FiducialPose], b: Sequence[FiducialPose], tolerance_mm: float, fraction: float
+) -> bool:
+    """Whether two pose sets show the same, unmoved scene.
+
+    Each fiducial of the larger set needs a partner of the same code in the other within
+    ``tolerance_mm``; at least ``fraction`` of them must have one (a glint or a passing
+    occlusion may hide a few). Two empty sets agree.
+    """
+    if len(a) < len(b):
+        a, b = b, a
+    if not a:
+        return True
+    if not b:
+        return False
+    pb = np.array([p.position_mm for p in b], dtype=np.float64)
+    cb = np.array([p.code for p in b])
+    tree = cKDTree(pb)
+    k = min(4, len(b))
+    dist, idx = tree.query(np.array([p.position_mm for p in a], dtype=np.float64), k=k)
+    dist = np.asarray(dist).reshape(len(a), k)
+    idx = np.asarray(idx).reshape(len(a), k)
+    codes_a = np.array([p.code for p in a])[:, None]
+    ok = np.any((dist <= tolerance_mm) & (cb[idx] == codes_a), axis=1)
+    return bool(ok.mean() >= fraction)
+
+
+class Session:
+    """The matcher's hall-automation state machine.
+
+    Feed it with :meth:`add_frame`, :meth:`set_run_active`, :meth:`set_run_id` and
+    :meth:`capture_baseline`; each returns the events it caused (new baseline, completed run,
+    notices). With a ``data_dir`` it resumes from what an earlier session wrote there.
+
+    Parameters
+    ----------
+    config : SessionConfig
+    fuse : callable, optional
+        ``fuse(frames) -> poses``: several frames of a static scene -> one pose set
+        (default :func:`pose_estimator.fuse`).
+    compare : callable, optional
+        ``compare(before, after) -> Comparison`` (default :func:`compare_poses`, which runs
+        :func:`displacement_matcher.match` and builds the report).
+    """
+
+    def __init__(
+        self,
+        config: SessionConfig,
+        *,
+        fuse: Fuser | None = None,
+        compare: Comparer | None = None,
+    ) -> None:
+        self.config = config
+        self._fuse: Fuser = fuse if fuse is not None else default_fuse
+        self._compare: Comparer = compare if compare is not None else compare_poses
+        self.baseline: Baseline | None = None
+        self.runs: list[RunRecord] = []
+        self.frames_seen = 0
+        self.frames_dropped = 0
+        self.last_frame_fiducials = 0
+        self._run_active = False
+        self._pending_run_id: str | None = None
+        self._current_run_id: str | None = None
+        self._capture_requested = False
+        self._settle_count = 0
+        self._stop_stamp: float | None = None
+        self._window = _Window(max(config.baseline_frames, config.settle_frames))
+        self.phase = Phase.WAITING_BASELINE
+        if config.data_dir is not None:
+            self._load(Path(config.data_dir))
+        if self.baseline is not None:
+            self.phase = Phase.MONITORING
+
+    # ------------------------------------------------------------------ inputs
+
+    def capture_baseline(self) -> list[Event]:
+        """Command: capture a new baseline from the next settled frames."""
+        if self._run_active:
+            return [Notice("warn", "capture_baseline ignored: a run is active")]
+        self._capture_requested = True
+        self._window.clear()
+        self.phase = Phase.CAPTURING_BASELINE
+        return [Notice("info", f"capturing baseline from {self.config.baseline_frames} frames")]
+
+    def set_run_id(self, run_id: str) -> list[Event]:
+        """The hall announced the id of the current or next run."""
+        run_id = run_id.strip()
+        if not run_id:
+            return [Notice("warn", "empty run id ignored")]
+        self._pending_run_id = run_id
+        if self._run_active or self.phase == Phase.SETTLING:
+            self._current_run_id = run_id
+        return []
+
+    def set_run_active(self, active: bool, stamp_s: float | None = None) -> list[Event]:
+        """The hall's run state changed (repeated identical states are harmless).
+
+        ``stamp_s`` is when the change happened, on the clock of the frames' stamps; after a
+        stop, frames stamped earlier (still in flight through the pipeline when the stop
+        arrived, showing the moving scene) are not used for settling.
+        """
+        events: list[Event] = []
+        if active == self._run_active:
+            return events
+        self._run_active = active
+        self._stop_stamp = None if active else stamp_s
+        if active:
+            if self.baseline is None:
+                events += self._baseline_from_window("auto", partial=True)
+            self._current_run_id = self._pending_run_id or f"run-{len(self.runs) + 1:03d}"
+            self._pending_run_id = None
+            self._capture_requested = False
+            self._window.clear()
+            self.phase = Phase.RUN_ACTIVE
+            events.append(Notice("info", f"run {self._current_run_id} started"))
+        else:
+            self._window.clear()
+            self._settle_count = 0
+            self.phase = Phase.SETTLING
+            events.append(Notice("info", f"run {self._current_run_id} stopped; settling"))
+        return events
+
+    def add_frame(self, poses: Sequence[FiducialPose], stamp_s: float = 0.0) -> list[Event]:
+        """One frame's pose set (possibly empty)."""
+        self.frames_seen += 1
+        self.last_frame_fiducials = len(poses)
+        if self.phase == Phase.RUN_ACTIVE:
+            return []
+        stop = self._stop_stamp
+        if self.phase == Phase.SETTLING and stop is not None and stamp_s < stop:
+            return []
+        frame = (tuple(poses), float(stamp_s))
+        win = self._window
+        if win.frames:
+            prev = win.frames[-1][0]
+            cfg = self.config
+            agree = frames_agree(prev, frame[0], cfg.settle_tolerance_mm, cfg.settle_fraction)
+            win.stable_run = win.stable_run + 1 if agree else 0
+        win.frames.append(frame)
+        while len(win.frames) > win.maxlen:
+            win.frames.popleft()
+        if self.phase == Phase.SETTLING:
+            return self._on_settling_frame()
+        wants_baseline = self._capture_requested or (
+            self.baseline is None and self.config.auto_baseline and not self.runs
+        )
+        if wants_baseline and self._settled(self.config.baseline_frames):
+            reason = "command" if self._capture_requested else "auto"
+            return self._baseline_from_window(reason, partial=False)
+        return []
+
+    # ------------------------------------------------------------------ state
+
+    def status(self) -> dict[str, str]:
+        """Key/value state for ``/diagnostics``."""
+        last = self.runs[-1] if self.runs else None
+        return {
+            "phase": self.phase.value,
+            "run_active": str(self._run_active).lower(),
+            "current_run_id": self._current_run_id or "",
+            "baseline_fiducials": str(len(self.baseline.poses)) if self.baseline else "none",
+            "baseline_frames": str(self.baseline.n_frames) if self.baseline else "0",
+            "runs_completed": str(len(self.runs)),
+            "last_run_id": last.run_id if last else "",
+            "frames_seen": str(self.frames_seen),
+            "frames_dropped": str(self.frames_dropped),
+            "last_frame_fiducials": str(self.last_frame_fiducials),
+            "data_dir": str(self.config.data_dir or ""),
+        }
+
+    # ------------------------------------------------------------------ internals
+
+    def _settled(self, n: int) -> bool:
+        win = self._window
+        return len(win.frames) >= n and (n == 1 or win.stable_run >= n - 1)
+
+    def _last_frames(self, n: int) -> list[tuple[tuple[FiducialPose, ...], float]]:
+        return list(self._window.frames)[-n:]
+
+    def _baseline_from_window(self, reason: str, *, partial: bool) -> list[Event]:
+        frames = self._last_frames(self.config.baseline_frames)
+        if not frames:
+            return [Notice("warn", "run started without a baseline and no frames to take one")]
+        fused = tuple(self._fuse([f for f, _ in frames]))
+        self.baseline = Baseline(fused, len(frames), frames[-1][1], reason)
+        self._capture_requested = False
+        self._window.clear()
+        self.phase = Phase.MONITORING
+        self._save_baseline()
+        events: list[Event] = [BaselineCaptured(self.baseline)]
+        if partial:
+            events.append(
+                Notice("warn", f"run started before the baseline settled: fused {len(frames)}")
+            )
+        return events
+
+    def _on_settling_frame(self) -> list[Event]:
+        self._settle_count += 1
+        cfg = self.config
+        settled = self._settled(cfg.settle_frames)
+        if not settled and self._settle_count < cfg.settle_timeout_frames:
+            return []
+        frames = self._last_frames(cfg.settle_frames)
+        after = tuple(self._fuse([f for f, _ in frames]))
+        run_id = self._current_run_id or f"run-{len(self.runs) + 1:03d}"
+        events: list[Event] = []
+        if not settled:
+            events.append(
+                Notice("warn", f"run {run_id}: scene not settled after {self._settle_count} frames")
+            )
+        report: dict[str, Any]
+        markers: tuple[MarkerSpec, ...] = ()
+        rows: tuple[dict[str, Any], ...] = ()
+        if self.baseline is None:
+            report = {"fiducials": [], "units": [], "summary": {}, "error": "no baseline"}
+            events.append(Notice("error", f"run {run_id}: no baseline to compare against"))
+        else:
+            cumulative = self._safe_compare(self.baseline.poses, after, events, run_id)
+            report = dict(cumulative.report)
+            markers = cumulative.markers
+            rows = cumulative.rows
+        previous = self.runs[-1].poses if self.runs else None
+        incremental = (
+            self._safe_compare(previous, after, events, run_id).report
+            if previous is not None
+            else None
+        )
+        report.update(
+            run_id=run_id,
+            sequence=len(self.runs) + 1,
+            settled=settled,
+            frames_fused=len(frames),
+            stamp_s=frames[-1][1],
+            incremental=incremental,
+        )
+        run = RunRecord(run_id, len(self.runs) + 1, after, report, markers, rows)
+        self.runs.append(run)
+        self._save_run(run)
+        self._current_run_id = None
+        self._window.clear()
+        self.phase = Phase.MONITORING if self.baseline is not None else Phase.WAITING_BASELINE
+        events.append(RunCompleted(run))
+        return events
+
+    def _safe_compare(
+        self,
+        before: Sequence[FiducialPose],
+        after: Sequence[FiducialPose],
+        events: list[Event],
+        run_id: str,
+    ) -> Comparison:
+        try:
+            return self._compare(before, after)
+        except ValueError as err:
+            events.append(Notice("error", f"run {run_id}: comparison failed: {err}"))
+            return Comparison({"fiducials": [], "units": [], "summary": {}, "error": str(err)}, ())
+
+    # ------------------------------------------------------------------ persistence
+
+    def _save_baseline(self) -> None:
+        if self.config.data_dir is None or self.baseline is None:
+            return
+        b = self.baseline
+        doc = {
+            "format": FORMAT_VERSION,
+            "kind": "baseline",
+            "n_frames": b.n_frames,
+            "stamp_s": b.stamp_s,
+            "reason": b.reason,
+            "poses": [pose_to_dict(p) for p in b.poses],
+        }
+        write_json_atomic(Path(self.config.data_dir) / "baseline.json", doc)
+
+    def _save_run(self, run: RunRecord) -> None:
+        if self.config.data_dir is None:
+            return
+        doc = {
+            "format": FORMAT_VERSION,
+            "kind": "run",
+            "run_id": run.run_id,
+            "sequence": run.sequence,
+            "poses": [pose_to_dict(p) for p in run.poses],
+            "markers": [marker_to_dict(m) for m in run.markers],
+            "rows": list(run.rows),
+            "report": run.report,
+        }
+        name = f"{run.sequence:04d}-{_safe_name(run.run_id)}.json"
+        write_json_atomic(Path(self.config.data_dir) / "runs" / name, doc)
+
+    def _load(self, data_dir: Path) -> None:
+        path = data_dir / "baseline.json"
+        if path.exists():
+            doc = _read_json(path)
+            try:
+                self.baseline = Baseline(
+                    tuple(pose_from_dict(p) for p in doc["poses"]),
+                    int(doc["n_frames"]),
+                    float(doc["stamp_s"]),
+                    str(doc["reason"]),
+                )
+            except (KeyError, TypeError, ValueError) as err:
+                raise SessionError(f"{path}: malformed baseline: {err}") from err
+        runs_dir = data_dir / "runs"
+        if runs_dir.is_dir():
+            for run_path in sorted(runs_dir.glob("*.json")):
+                doc = _read_json(run_path)
+                try:
+                    self.runs.append(
+                        RunRecord(
+                            str(doc["run_id"]),
+                            int(doc["sequence"]),
+                            tuple(pose_from_dict(p) for p in doc["poses"]),
+                            dict(doc["report"]),
+                            tuple(marker_from_dict(m) for m in doc.get("markers", [])),
+                            tuple(dict(r) for r in doc.get("rows", [])),
+                        )
+                    )
+                except (KeyError, TypeError, ValueError) as err:
+                    raise SessionError(f"{run_path}: malformed run record: {err}") from err
+            self.runs.sort(key=lambda r: r.sequence)
+
+
+# ---------------------------------------------------------------------- helpers
+
+
+def _safe_name(run_id: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", run_id)[:80] or "run"
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise SessionError(f"cannot read {path}: {err}") from err
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT_VERSION:
+        raise SessionError(f"{path}: not an armourcam session record (format {FORMAT_VERSION})")
+    return doc
+
+
+def write_json_atomic(path: Path, doc: Any) -> None:
+    """Write JSON so that readers see the old file or the new one, never a torn one.
+
+    The text goes to a temporary file in the same directory, is flushed to disk, then replaces
+    ``path`` with ``os.replace`` (atomic on POSIX within one file system).
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(doc, f, indent=1, allow_nan=True)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def pose_to_dict(pose: FiducialPose) -> dict[str, Any]:
+    """JSON-ready form of a pose (the detection is not kept)."""
+    return {
+        "code": int(pose.code),
+        "position_mm": np.asarray(pose.position_mm, dtype=float).tolist(),
+        "normal": np.asarray(pose.normal, dtype=float).tolist(),
+        "covariance_mm2": np.asarray(pose.covariance_mm2, dtype=float).tolist(),
+        "n_frames": int(pose.n_frames),
+    }
+
+
+def pose_from_dict(doc: dict[str, Any]) -> FiducialPose:
+    """Inverse of :func:`pose_to_dict`."""
+    pos: NDArray[np.float64] = np.asarray(doc["position_mm"], dtype=np.float64).reshape(3)
+    normal: NDArray[np.float64] = np.asarray(doc["normal"], dtype=np.float64).reshape(3)
+    cov: NDArray[np.float64] = np.asarray(doc["covariance_mm2"], dtype=np.float64).reshape(3, 3)
+    return FiducialPose(int(doc["code"]), pos, normal, cov, None, int(doc.get("n_frames", 1)))
+
+
+def marker_to_dict(m: MarkerSpec) -> dict[str, Any]:
+    """JSON-ready form of a marker."""
+    return {
+        "kind": m.kind,
+        "start_mm": list(m.start_mm),
+        "end_mm": list(m.end_mm),
+        "same_code": m.same_code,
+        "text": m.text,
+    }
+
+
+def marker_from_dict(doc: dict[str, Any]) -> MarkerSpec:
+    """Inverse of :func:`marker_to_dict`."""
+    s = [float(x) for x in doc["start_mm"]]
+    e = [float(x) for x in doc["end_mm"]]
+    return MarkerSpec(
+        str(doc["kind"]),
+        (s[0], s[1], s[2]),
+        (e[0], e[1], e[2]),
+        bool(doc.get("same_code", True)),
+        str(doc.get("text", "")),
+    )
+
+
+def default_fuse(frames: Sequence[Sequence[FiducialPose]]) -> list[FiducialPose]:
+    """Fuse frames of a static scene with the pose estimator's fusion."""
+    from pose_estimator import fuse  # the core; imported late so that tests may inject their own
+
+    return list(fuse(frames))
+
+
+def compare_poses(before: Sequence[FiducialPose], after: Sequence[FiducialPose]) -> Comparison:
+    """Match ``after`` against ``before`` and build the report and markers (the cores' job)."""
+    from . import markers as _markers
+
+    return _markers.compare(before, after)

@@ -1,0 +1,616 @@
+"""Armour units: which fiducials belong together, and how each unit moved.
+
+A unit map (YAML) names the units and their fiducial codes, or gives a *template*: the code set
+that repeats on every unit (the paper's section 5 case, where every dolos carries the same four
+codes), optionally with the fiducials' positions on the unit. Without a map, or with a template,
+units are found automatically in the baseline: fiducials of different codes are grouped by
+proximity, never two of one code in a unit, and when the template gives positions only pairs whose
+distance agrees with the unit's own geometry are grouped.
+
+Unit map YAML (lengths in mm, positions in the unit's own frame)::
+
+    units:                  # explicit units: every code on one unit only
+      D01: {codes: [3, 17]}
+      D02: {codes: [29, 41], positions_mm: {29: [0, 0, 15], 41: [0, 0, -15]}}
+    # or
+    template:               # the same code set on every unit
+      codes: [3, 17, 29, 41]
+      positions_mm: {3: [9.5, 15.2, 0], 17: [9.5, -15.2, 0], 29: [-9.5, 0, 15.2], 41: [-9.5, 0, -15.2]}
+      span_mm: 35           # optional: largest distance between two fiducials of a unit
+
+Per unit the motion is a weighted rigid fit (Kabsch/Umeyama without scale) when at least three of
+its fiducials are matched consistently, a translation otherwise. Matches are screened first:
+same-code matches are preferred to cross-code ones, and only the largest subset whose pairwise
+distances are preserved (a rigid body's are) is used. Camera frame, millimetres.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from fiducial_detector.codebook import code_count
+from pose_estimator.types import FiducialPose
+
+from .errors import MatcherError
+from .types import MatchResult, UnitMotion
+
+DEFAULT_SPAN_MM = 40.0
+DEFAULT_RIGID_TOL_MM = 3.0
+DEFAULT_OVERTURN_DEG = 90.0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class UnitSpec:
+    """One unit (or the repeated template) of a unit map.
+
+    Attributes
+    ----------
+    unit : str
+        Unit id (``"template"`` for the template).
+    codes : tuple of int
+        Codes of its fiducials.
+    positions_mm : dict of int to (3,) ndarray
+        Fiducial centres on the unit (unit frame, mm), for the codes that have one.
+    """
+
+    unit: str
+    codes: tuple[int, ...]
+    positions_mm: dict[int, NDArray[np.float64]]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class UnitMap:
+    """Explicit units, or the template repeated on every unit (exactly one of the two).
+
+    Attributes
+    ----------
+    units : tuple of UnitSpec
+    template : UnitSpec or None
+    span_mm : float
+        Largest distance between two fiducials of one unit (for automatic grouping).
+    """
+
+    units: tuple[UnitSpec, ...] = ()
+    template: UnitSpec | None = None
+    span_mm: float = DEFAULT_SPAN_MM
+
+
+def _codes(value: Any, where: str) -> tuple[int, ...]:
+    if not isinstance(value, Sequence) or isinstance(value, str) or not value:
+        raise MatcherError(f"{where}: codes must be a non-empty list of integers, got {value!r}")
+    out = []
+    for c in value:
+        if isinstance(c, bool) or not isinstance(c, int):
+            raise MatcherError(f"{where}: code {c!r} is not an integer")
+        if not 0 <= c < code_count():
+            raise MatcherError(
+                f"{where}: unknown code {c} (the codebook has codes 0..{code_count() - 1})"
+            )
+        out.append(int(c))
+    if len(set(out)) != len(out):
+        raise MatcherError(f"{where}: a code is listed twice in {out}")
+    return tuple(out)
+
+
+def _spec(name: str, doc: Any) -> UnitSpec:
+    if not isinstance(doc, Mapping):
+        raise MatcherError(f"unit {name!r}: expected a mapping with 'codes', got {doc!r}")
+    unknown = set(doc) - {"codes", "positions_mm", "span_mm"}
+    if unknown:
+        raise MatcherError(f"unit {name!r}: unknown keys {sorted(map(str, unknown))}")
+    codes = _codes(doc.get("codes"), f"unit {name!r}")
+    positions: dict[int, NDArray[np.float64]] = {}
+    raw = doc.get("positions_mm") or {}
+    if not isinstance(raw, Mapping):
+        raise MatcherError(f"unit {name!r}: positions_mm must map codes to [x, y, z]")
+    for key, value in raw.items():
+        try:
+            code = int(key)
+            p = np.asarray(value, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError) as err:
+            raise MatcherError(f"unit {name!r}: bad position for code {key!r}: {value!r}") from err
+        if code not in codes:
+            raise MatcherError(f"unit {name!r}: position given for code {code} not in {codes}")
+        if not np.all(np.isfinite(p)):
+            raise MatcherError(f"unit {name!r}: position of code {code} is not finite")
+        positions[code] = p
+    return UnitSpec(str(name), codes, positions)
+
+
+def parse_unit_map(doc: Any) -> UnitMap:
+    """Validate a parsed unit-map mapping (see the module docstring for the format).
+
+    Raises
+    ------
+    MatcherError
+        Naming the unit and value that is wrong: unknown codes, a code on two units, malformed
+        positions, neither or both of ``units`` and ``template``.
+    """
+    if not isinstance(doc, Mapping):
+        raise MatcherError("unit map must be a mapping with 'units' or 'template'")
+    extra = set(doc) - {"units", "template"}
+    if extra:
+        raise MatcherError(f"unit map: unknown keys {sorted(map(str, extra))}")
+    if ("units" in doc) == ("template" in doc):
+        raise MatcherError("unit map needs exactly one of 'units' and 'template'")
+    if "template" in doc:
+        tdoc = doc["template"]
+        spec = _spec("template", tdoc)
+        span = float(tdoc.get("span_mm", 0.0) or 0.0)
+        if span <= 0:
+            span = DEFAULT_SPAN_MM
+            if len(spec.positions_mm) >= 2:
+                pts = np.array(list(spec.positions_mm.values()))
+                span = float(np.max(np.linalg.norm(pts[:, None] - pts[None], axis=2))) + 5.0
+        return UnitMap((), spec, span)
+    udoc = doc["units"]
+    if not isinstance(udoc, Mapping) or not udoc:
+        raise MatcherError("unit map: 'units' must be a non-empty mapping of unit id -> unit")
+    specs = tuple(_spec(str(k), v) for k, v in udoc.items())
+    owner: dict[int, str] = {}
+    for s in specs:
+        for c in s.codes:
+            if c in owner:
+                raise MatcherError(
+                    f"unit map: code {c} is on units {owner[c]!r} and {s.unit!r}; a code set "
+                    "repeated on every unit is given as 'template'"
+                )
+            owner[c] = s.unit
+    return UnitMap(specs, None, DEFAULT_SPAN_MM)
+
+
+def load_unit_map(path: str | Path) -> UnitMap:
+    """Read and validate a unit-map YAML file (raises :class:`MatcherError`)."""
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise MatcherError(f"cannot read unit map {path}: {err}") from err
+    try:
+        return parse_unit_map(doc)
+    except MatcherError as err:
+        raise MatcherError(f"unit map {path}: {err}") from err
+
+
+def group_fiducials(
+    poses: Sequence[FiducialPose],
+    *,
+    span_mm: float = DEFAULT_SPAN_MM,
+    template: UnitSpec | None = None,
+    tol_mm: float = DEFAULT_RIGID_TOL_MM,
+) -> list[list[int]]:
+    """Group the fiducials of one state into units by proximity and code set.
+
+    Pairs closer than ``span_mm`` with different codes are joined in order of increasing distance
+    (complete linkage) as long as a group never holds one code twice, every pair in it is within
+    ``span_mm`` and, when ``template`` gives positions for both codes, their distance agrees with
+    the template's within ``tol_mm`` plus three standard deviations. Fiducials whose code is not in
+    ``template.codes`` (when given) are left out; non-finite poses are left out.
+
+    Returns
+    -------
+    list of list of int
+        Indices into ``poses``, one list per unit, ordered by their first index.
+    """
+    allowed = set(template.codes) if template is not None else None
+    idx = [
+        i
+        for i, p in enumerate(poses)
+        if np.all(np.isfinite(p.position_mm))
+        and (allowed is None or int(p.code) in allowed)
+    ]
+    if not idx:
+        return []
+    pos = np.array([poses[i].position_mm for i in idx], dtype=np.float64).reshape(-1, 3)
+    code = np.array([int(poses[i].code) for i in idx])
+    cov = np.array([poses[i].covariance_mm2 for i in idx], dtype=np.float64).reshape(-1, 3, 3)
+    cov = np.where(np.isfinite(cov), cov, 0.0)
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(pos).query_pairs(span_mm, output_type="ndarray")
+    tdist: dict[tuple[int, int], float] = {}
+    if template is not None:
+        for ca, cb in itertools.permutations(template.positions_mm, 2):
+            tdist[(ca, cb)] = float(
+                np.linalg.norm(template.positions_mm[ca] - template.positions_mm[cb])
+            )
+
+    def mismatch(i: int, j: int) -> float:
+        """Template distance error over its tolerance (<= 1 compatible); inf if incompatible."""
+        if code[i] == code[j]:
+            return np.inf
+        v = pos[i] - pos[j]
+        d = float(np.linalg.norm(v))
+        if d > span_mm:
+            return np.inf
+        key = (int(code[i]), int(code[j]))
+        if key not in tdist:
+            return 0.0
+        u = v / max(d, 1e-9)
+        sd = float(np.sqrt(max(u @ (cov[i] + cov[j]) @ u, 0.0)))
+        return abs(d - tdist[key]) / (tol_mm + 3.0 * sd)
+
+    def compatible(i: int, j: int) -> bool:
+        return mismatch(i, j) <= 1.0
+
+    if len(pairs):
+        # Best-fitting pairs first: by template error when there is a template, else by distance.
+        key = np.array([mismatch(i, j) for i, j in pairs.tolist()]) if tdist else np.zeros(0)
+        dist = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
+        order = np.lexsort((dist, key)) if tdist else np.argsort(dist, kind="stable")
+        pairs = pairs[order]
+        if tdist:
+            pairs = pairs[key[order] <= 1.0]
+    group = list(range(len(idx)))
+    members: dict[int, list[int]] = {k: [k] for k in range(len(idx))}
+    for i, j in pairs.tolist():
+        gi, gj = group[i], group[j]
+        if gi == gj:
+            continue
+        a, b = members[gi], members[gj]
+        if set(code[a].tolist()) & set(code[b].tolist()):
+            continue
+        if not all(compatible(x, y) for x in a for y in b):
+            continue
+        for k in b:
+            group[k] = gi
+        members[gi] = a + b
+        del members[gj]
+    out = [sorted(idx[k] for k in m) for m in members.values()]
+    return sorted(out, key=lambda g: g[0])
+
+
+def kabsch(
+    src: NDArray[np.float64], dst: NDArray[np.float64], weights: NDArray[np.float64] | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Weighted least-squares rotation and translation ``dst ~ R @ src + t`` (Umeyama, no scale).
+
+    Parameters
+    ----------
+    src, dst : (N, 3) ndarray
+        Corresponding points, N >= 3 (not all collinear for a unique rotation).
+    weights : (N,) ndarray, optional
+        Non-negative weights (default equal).
+
+    Returns
+    -------
+    R : (3, 3) ndarray
+        Proper rotation (det +1).
+    t : (3,) ndarray
+    """
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    cs, cd = w @ src, w @ dst
+    H = (src - cs).T @ ((dst - cd) * w[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T))) or 1.0])
+    R = Vt.T @ D @ U.T
+    return R, cd - R @ cs
+
+
+def _consistent_subset(
+    before: NDArray[np.float64], after: NDArray[np.float64], tol: NDArray[np.float64]
+) -> list[int]:
+    """Largest subset of matches whose pairwise distances are preserved within ``tol[i] + tol[j]``.
+
+    A rigid body keeps every distance, so a match that changes distances to the others is wrong.
+    Ties go to the subset with the smallest total distance change.
+    """
+    k = len(before)
+    if k <= 1:
+        return list(range(k))
+    db = np.linalg.norm(before[:, None] - before[None], axis=2)
+    da = np.linalg.norm(after[:, None] - after[None], axis=2)
+    err = np.abs(db - da)
+    ok = err <= tol[:, None] + tol[None, :]
+    for size in range(k, 0, -1):
+        best: tuple[float, list[int]] | None = None
+        for sub in itertools.combinations(range(k), size):
+            if all(ok[i, j] for i, j in itertools.combinations(sub, 2)):
+                score = float(sum(err[i, j] for i, j in itertools.combinations(sub, 2)))
+                if best is None or score < best[0]:
+                    best = (score, list(sub))
+        if best is not None:
+            return best[1]
+    return []
+
+
+def _rotation_deg(R: NDArray[np.float64]) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def assign_units(
+    result: MatchResult,
+    *,
+    unit_map: UnitMap | None = None,
+    span_mm: float | None = None,
+    rigid_tol_mm: float = DEFAULT_RIGID_TOL_MM,
+) -> tuple[list[tuple[str, list[int]]], list[int]]:
+    """Units over the baseline: ``[(unit id, baseline indices)]`` and the unassigned indices.
+
+    From ``unit_map.units`` (a baseline fiducial belongs to the unit listing its code; mapped units
+    with no fiducial seen get an empty list), or grouped automatically (:func:`group_fiducials`,
+    with the template when given).
+    """
+    base = result.baseline
+    span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
+    if not span > 0:
+        raise MatcherError(f"span_mm must be positive, got {span}")
+    rejected_b = {r.index for r in result.rejected if r.side == "baseline"}
+    usable_b = [i for i in range(len(base)) if i not in rejected_b]
+    unassigned: list[int] = []
+    if unit_map is not None and unit_map.units:
+        owner = {c: s.unit for s in unit_map.units for c in s.codes}
+        by_unit: dict[str, list[int]] = {s.unit: [] for s in unit_map.units}
+        for i in usable_b:
+            u = owner.get(int(base[i].code))
+            if u is None:
+                unassigned.append(i)
+            else:
+                by_unit[u].append(i)
+        return list(by_unit.items()), unassigned
+    template = unit_map.template if unit_map is not None else None
+    sub = [base[i] for i in usable_b]
+    found = group_fiducials(sub, span_mm=span, template=template, tol_mm=rigid_tol_mm)
+    grouped = {usable_b[k] for g in found for k in g}
+    unassigned = [i for i in usable_b if i not in grouped]
+    return [(f"U{n + 1:04d}", [usable_b[k] for k in g]) for n, g in enumerate(found)], unassigned
+
+
+def unit_motions(
+    result: MatchResult,
+    *,
+    unit_map: UnitMap | None = None,
+    span_mm: float | None = None,
+    rigid_tol_mm: float = DEFAULT_RIGID_TOL_MM,
+    overturn_deg: float = DEFAULT_OVERTURN_DEG,
+    groups: tuple[list[tuple[str, list[int]]], list[int]] | None = None,
+) -> tuple[tuple[UnitMotion, ...], tuple[int, ...]]:
+    """Per-unit rigid motion from a fiducial matching.
+
+    Units come from :func:`assign_units` (or ``groups``, its earlier result). Appeared current
+    fiducials are attached to the nearest unit that already has current fiducials (or lost all of
+    them) when their code is free on it, within the unit span: the faces an overturned unit now
+    shows.
+
+    Returns
+    -------
+    units : tuple of UnitMotion
+        One per unit seen in the baseline, plus, for an explicit map, ``unseen`` entries for mapped
+        units none of whose codes was seen.
+    unassigned : tuple of int
+        Baseline indices of usable fiducials that belong to no unit (code not in the map).
+    """
+    base, cur = result.baseline, result.current
+    span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
+    if groups is None:
+        groups = assign_units(
+            result, unit_map=unit_map, span_mm=span, rigid_tol_mm=rigid_tol_mm
+        )
+    unit_list, unassigned = groups
+
+    unit_of_b = {i: n for n, (_, ix) in enumerate(unit_list) for i in ix}
+    pairs_of: dict[int, list[int]] = {n: [] for n in range(len(unit_list))}  # entry indices
+    cur_of: dict[int, list[int]] = {n: [] for n in range(len(unit_list))}
+    vanished_of = dict.fromkeys(range(len(unit_list)), 0)
+    for k, d in enumerate(result.displacements):
+        if d.baseline_index is None or d.baseline_index not in unit_of_b:
+            continue
+        n = unit_of_b[d.baseline_index]
+        if d.is_match:
+            pairs_of[n].append(k)
+            assert d.current_index is not None
+            cur_of[n].append(d.current_index)
+        else:
+            vanished_of[n] += 1
+
+    # Appeared fiducials: attach to a unit whose current fiducials (or, failing that, baseline
+    # position) are within the span and which does not already show that code.
+    appeared_of = dict.fromkeys(range(len(unit_list)), 0)
+    owner_codes = None
+    if unit_map is not None and unit_map.units:
+        owner_codes = {c: n for n, s in enumerate(unit_map.units) for c in s.codes}
+    for d in result.by_label("appeared"):
+        assert d.current_index is not None and d.after_mm is not None
+        code = int(d.code_after or 0)
+        if owner_codes is not None:
+            n_own = owner_codes.get(code)
+            if n_own is not None:
+                cur_of[n_own].append(d.current_index)
+                appeared_of[n_own] += 1
+            continue
+        best, best_d = None, span
+        for n, (_, ix) in enumerate(unit_list):
+            ref = [cur[j].position_mm for j in cur_of[n]] or [base[i].position_mm for i in ix]
+            codes_now = {int(cur[j].code) for j in cur_of[n]}
+            if code in codes_now:
+                continue
+            if unit_map is not None and unit_map.template is not None:
+                if code not in unit_map.template.codes:
+                    continue
+            dist = float(np.min(np.linalg.norm(np.asarray(ref) - d.after_mm, axis=1)))
+            if dist < best_d:
+                best, best_d = n, dist
+        if best is not None:
+            cur_of[best].append(d.current_index)
+            appeared_of[best] += 1
+
+    out: list[UnitMotion] = []
+    for n, (name, ix) in enumerate(unit_list):
+        out.append(
+            _motion_of_unit(
+                name,
+                ix,
+                [result.displacements[k] for k in pairs_of[n]],
+                tuple(cur_of[n]),
+                vanished_of[n],
+                appeared_of[n],
+                base,
+                rigid_tol_mm,
+                overturn_deg,
+            )
+        )
+    return tuple(out), tuple(unassigned)
+
+
+def _motion_of_unit(
+    name: str,
+    ix: list[int],
+    pairs: list[Any],
+    current_indices: tuple[int, ...],
+    n_vanished: int,
+    n_appeared: int,
+    base: tuple[FiducialPose, ...],
+    rigid_tol_mm: float,
+    overturn_deg: float,
+) -> UnitMotion:
+    """Motion of one unit from its matched fiducials (see :func:`unit_motions`)."""
+    codes = tuple(int(base[i].code) for i in ix)
+    nan3 = np.full(3, np.nan)
+    ref_all = (
+        np.mean([base[i].position_mm for i in ix], axis=0).astype(np.float64) if ix else nan3
+    )
+    n_cross = sum(d.label == "cross_code" for d in pairs)
+    same = [d for d in pairs if d.label == "same_code"]
+    use = same if same else [d for d in pairs if d.label == "cross_code"]
+    # Fiducials seen before now face away and other faces show instead: turned over. (A unit
+    # with any same-code match still shows a face it showed before.)
+    turned_over = bool(ix) and not same and (n_cross + n_appeared) >= 1
+    if not ix:
+        status = "unseen"
+        return UnitMotion(
+            name, codes, (), current_indices, 0, "none", np.eye(3), nan3, None, nan3, 0.0,
+            False, 0, n_appeared, 0, status,
+        )  # fmt: skip
+    if not use:
+        return UnitMotion(
+            name, codes, tuple(ix), current_indices, 0, "none", np.eye(3), nan3, None, ref_all,
+            0.0, turned_over, n_vanished, n_appeared, n_cross, "lost",
+        )  # fmt: skip
+    before = np.array([d.before_mm for d in use], dtype=np.float64)
+    after = np.array([d.after_mm for d in use], dtype=np.float64)
+    var = np.array([float(np.sum(d.sigma_mm**2)) / 3.0 for d in use])
+    tol = rigid_tol_mm / 2.0 + 3.0 * np.sqrt(var)
+    keep = _consistent_subset(before, after, tol) if same else list(range(len(use)))
+    before, after, var = before[keep], after[keep], var[keep]
+    w = 1.0 / np.maximum(var, 1e-6)
+    if len(keep) >= 3 and np.linalg.matrix_rank(before - before.mean(axis=0), tol=1e-6) >= 2:
+        R, t = kabsch(before, after, w)
+        resid = float(np.sqrt(np.mean(np.sum((before @ R.T + t - after) ** 2, axis=1))))
+        ref = ref_all
+        trans = R @ ref + t - ref
+        rot_deg: float | None = _rotation_deg(R)
+        method = "rigid"
+    else:
+        R = np.eye(3)
+        ref = np.average(before, axis=0, weights=w)
+        trans = np.average(after - before, axis=0, weights=w)
+        resid, rot_deg, method = 0.0, None, "translation"
+    overturned = turned_over or (rot_deg is not None and rot_deg >= overturn_deg)
+    return UnitMotion(
+        name,
+        codes,
+        tuple(ix),
+        current_indices,
+        len(keep),
+        method,  # type: ignore[arg-type]
+        R,
+        np.asarray(trans, dtype=np.float64),
+        rot_deg,
+        np.asarray(ref, dtype=np.float64),
+        resid,
+        bool(overturned),
+        n_vanished,
+        n_appeared,
+        n_cross,
+    )
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class UnitAnalysis:
+    """A unit-aware matching: the final fiducial matching, unit motions and leftovers.
+
+    Attributes
+    ----------
+    result : MatchResult
+        The last pass's matching.
+    units : tuple of UnitMotion
+    unassigned : tuple of int
+        Baseline indices that belong to no unit.
+    passes : int
+        Matching passes run (1 = no unit-aware refinement).
+    """
+
+    result: MatchResult
+    units: tuple[UnitMotion, ...]
+    unassigned: tuple[int, ...]
+    passes: int
+
+
+def match_units(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    *,
+    unit_map: UnitMap | None = None,
+    span_mm: float | None = None,
+    rigid_tol_mm: float = DEFAULT_RIGID_TOL_MM,
+    overturn_deg: float = DEFAULT_OVERTURN_DEG,
+    refine_passes: int = 2,
+    rigid_gate_mm: float = 8.0,
+    translation_gate_mm: float = 15.0,
+    **match_kw: Any,
+) -> UnitAnalysis:
+    """Match fiducials, find units and their motion, then re-match knowing how units moved.
+
+    The first pass is :func:`displacement_matcher.match` alone. A unit whose same-code matches
+    agree on a rigid motion predicts where each of its baseline fiducials is now; the next pass
+    measures costs from those predictions with a tight gate for them (``rigid_gate_mm`` after a
+    rigid fit, ``translation_gate_mm`` after a translation, which ignores the unit's rotation).
+    So a still unit's fiducial that is hidden now no longer grabs a stranger 40 mm away, and a
+    moved unit's fiducials find their new places. Each pass is still one exact global matching.
+
+    Parameters
+    ----------
+    baseline, current : sequence of FiducialPose
+    unit_map : UnitMap, optional
+    span_mm, rigid_tol_mm, overturn_deg
+        See :func:`unit_motions`.
+    refine_passes : int
+        Unit-aware passes after the first (0 for the plain matching).
+    rigid_gate_mm, translation_gate_mm : float
+        Gates of predicted fiducials.
+    **match_kw
+        Passed to :func:`displacement_matcher.match` (``gate_mm``, ``code_penalty_mm``...).
+    """
+    from .match import match
+
+    if refine_passes < 0:
+        raise MatcherError(f"refine_passes must be >= 0, got {refine_passes}")
+    result = match(baseline, current, **match_kw)
+    groups = assign_units(result, unit_map=unit_map, span_mm=span_mm, rigid_tol_mm=rigid_tol_mm)
+    kw = {"unit_map": unit_map, "span_mm": span_mm, "rigid_tol_mm": rigid_tol_mm,
+          "overturn_deg": overturn_deg, "groups": groups}  # fmt: skip
+    units, unassigned = unit_motions(result, **kw)  # type: ignore[arg-type]
+    passes = 1
+    for _ in range(refine_passes):
+        pred = np.full((len(baseline), 3), np.nan)
+        gate = np.full(len(baseline), np.nan)
+        for u in units:
+            if u.method == "none" or u.overturned or u.n_matched == 0:
+                continue
+            ref = u.reference_before_mm
+            for i in u.baseline_indices:
+                p = np.asarray(baseline[i].position_mm, dtype=np.float64)
+                pred[i] = u.rotation @ (p - ref) + ref + u.translation_mm
+                gate[i] = rigid_gate_mm if u.method == "rigid" else translation_gate_mm
+        result = match(baseline, current, prediction_mm=pred, row_gate_mm=gate, **match_kw)
+        units, unassigned = unit_motions(result, **kw)  # type: ignore[arg-type]
+        passes += 1
+    return UnitAnalysis(result, units, unassigned, passes)

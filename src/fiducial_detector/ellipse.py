@@ -1,0 +1,720 @@
+"""Sub-pixel ellipse estimation from image gradients (paper section 3, step 3).
+
+Implements the dual-conic method of Ouellet & Hébert [1]: every pixel near an edge whose gradient is
+strong defines a line ``l_i = (I_u, I_v, -(I_u u + I_v v))`` through the pixel, normal to the
+gradient. Those lines are (nearly) tangent to the imaged circle, so they satisfy
+``l_i^T C* l_i = 0`` for the *dual* conic ``C* = C^-1`` of the ellipse. ``C*`` is found by linear
+least squares with ``C*_33 = 1`` after centring and scaling the coordinates; the ellipse is
+``C = inv(C*)``. No contour points are extracted, so every pixel of the blurred edge contributes.
+
+Refinements over [1] (each measured in ``benchmarks/detector_precision.py``):
+
+- pixels are restricted to a band of half-width ``band_px`` around the current ellipse (Sampson
+  distance), tapered smoothly to zero at the band's edge, and the fit is iterated with the band
+  re-centred on the previous estimate;
+- pixels whose gradient direction disagrees with the ellipse normal, or whose polarity (dark to
+  bright) is the opposite of the edge's, are excluded: they belong to neighbouring edges such as
+  the code sectors;
+- gradients are Scharr derivatives (normalised to intensity per pixel), computed only at the
+  band's pixels.
+
+Uncertainty: the image noise ``sigma`` (estimated robustly from the image, or given) is propagated
+to first order through the Scharr filter and the weighted normal equations, including the
+correlation that the filter introduces between neighbouring gradients, then to the ellipse
+parameters by a numerical Jacobian. The dual-conic fit's own residuals are *not* used to scale the
+covariance: they are dominated by the deterministic spread of tangent lines across the blurred edge
+(the same in every noise realisation), and would overstate the random error several times.
+
+Pixel convention: ``(u, v)`` = (x, y) = (column, row), pixel centres at integer coordinates.
+
+References
+----------
+.. [1] J.-N. Ouellet and P. Hébert, "Precise ellipse estimation without contour point extraction",
+   Machine Vision and Applications 21 (2009) 59-67.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import DetectorError
+from .types import Ellipse
+
+__all__ = [
+    "DEFAULT_BAND_PX",
+    "ellipse_from_conic",
+    "estimate_noise",
+    "fit_ellipse",
+    "fit_ellipses",
+]
+
+DEFAULT_BAND_PX = 2.5
+"""Default half-width of the pixel band around the edge (final iteration), pixels."""
+
+_MIN_BAND_PX = 1.5
+_SEED_SLACK_PX = 1.0  # extra band half-width in the first iteration, for the seed's error
+_MIN_COS = 0.85  # gradient direction vs ellipse normal: |angle| <= ~32 degrees
+_MIN_PIXELS = 12  # fewer band pixels than this cannot determine an ellipse reliably
+_ITERATIONS = 3
+_GPOW = 2.0
+_TAPER = 0.0
+
+# Scharr derivative along u, normalised to intensity per pixel: [[-3,0,3],[-10,0,10],[-3,0,3]]/32.
+# (dv, du, weight) triples; the v derivative is the transpose.
+_SCHARR_U = ((-1, -1, -3.0), (-1, 1, 3.0), (0, -1, -10.0), (0, 1, 10.0), (1, -1, -3.0), (1, 1, 3.0))
+_SCHARR_KERNEL = np.array([[-3.0, 0.0, 3.0], [-10.0, 0.0, 10.0], [-3.0, 0.0, 3.0]]) / 32.0
+
+
+SeedLike = Ellipse | ArrayLike
+
+
+def ellipse_from_conic(C: ArrayLike) -> tuple[float, float, float, float, float]:
+    """Centre, semi-axes and angle of the ellipse with conic matrix ``C``.
+
+    Parameters
+    ----------
+    C : (3, 3) array_like
+        Symmetric conic, ``[u v 1] C [u v 1]^T = 0`` on the ellipse (any scale, either sign).
+
+    Returns
+    -------
+    (u, v, a, b, angle) : tuple of float
+        Centre in pixels, semi-axes ``a >= b > 0`` and the major axis' angle from +u towards +v in
+        ``[0, pi)`` (canonical form).
+
+    Raises
+    ------
+    ValueError
+        If ``C`` is not 3x3 or is not a real, non-degenerate ellipse.
+    """
+    arr = np.asarray(C, dtype=np.float64)
+    if arr.shape != (3, 3):
+        raise ValueError(f"conic must be a 3x3 matrix, got shape {arr.shape}")
+    out = _ellipses_from_conics(arr[None])
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"conic is not a real ellipse: {arr.tolist()}")
+    u, v, a, b, angle = (float(x) for x in out[0])
+    return u, v, a, b, angle
+
+
+def _ellipses_from_conics(C: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Vectorised :func:`ellipse_from_conic`: (n, 3, 3) -> (n, 5); NaN rows for non-ellipses."""
+    C = 0.5 * (C + np.swapaxes(C, 1, 2))
+    q11, q12, q22 = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+    det = q11 * q22 - q12 * q12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Centre: Q x0 = -c.
+        x0 = (-q22 * C[:, 0, 2] + q12 * C[:, 1, 2]) / det
+        y0 = (q12 * C[:, 0, 2] - q11 * C[:, 1, 2]) / det
+        # (x - x0)^T Q (x - x0) = k on the ellipse.
+        k = q11 * x0 * x0 + 2 * q12 * x0 * y0 + q22 * y0 * y0 - C[:, 2, 2]
+        tr = q11 + q22
+        disc = np.sqrt((q11 - q22) ** 2 + 4 * q12 * q12)
+        lam_small = 0.5 * (tr / k - disc / np.abs(k))  # eigenvalues of Q / k: 1/a^2 <= 1/b^2
+        lam_big = 0.5 * (tr / k + disc / np.abs(k))
+        a = 1.0 / np.sqrt(lam_small)
+        b = 1.0 / np.sqrt(lam_big)
+        # Major axis: eigenvector of the smaller eigenvalue of Q.
+        angle = 0.5 * np.arctan2(-2.0 * q12 * np.sign(k), -(q11 - q22) * np.sign(k))
+    angle = np.mod(angle, np.pi)
+    ok = (det > 0) & (lam_small > 0) & (lam_big > 0) & np.isfinite(a) & np.isfinite(b)
+    out = np.column_stack([x0, y0, a, b, angle])
+    out[~ok] = np.nan
+    return out
+
+
+def estimate_noise(image: ArrayLike) -> float:
+    """Robust standard deviation of additive white noise in an image, in its intensity units.
+
+    Immerkær's Laplacian-difference estimator with a median instead of a mean, so that edges (less
+    than half of the pixels) do not inflate it. Large images are subsampled by row blocks.
+
+    Parameters
+    ----------
+    image : (H, W) array_like
+        Grey image, at least 3x3.
+    """
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim != 2 or min(img.shape) < 3:
+        raise DetectorError(f"noise estimation needs a 2-D image of at least 3x3, got {img.shape}")
+    if img.size > 400_000:
+        # Every 16th block of 3 rows keeps the estimate cheap on full frames.
+        rows = np.arange(0, img.shape[0] - 2, 16)
+        blocks = [img[r : r + 3] for r in rows]
+        img = np.concatenate([_laplacian_valid(b).ravel() for b in blocks])
+        response = img
+    else:
+        response = _laplacian_valid(img).ravel()
+    response = response[np.isfinite(response)]
+    if response.size == 0:
+        return float("nan")
+    # The mask [[1,-2,1],[-2,4,-2],[1,-2,1]] has sum of squares 36; 0.6745 = median|N(0,1)|.
+    sigma = float(np.median(np.abs(response))) / (0.6745 * 6.0)
+    # Quantisation floor: a perfectly flat integer image still has 1/sqrt(12) of rounding noise.
+    if np.issubdtype(np.asarray(image).dtype, np.integer):
+        sigma = max(sigma, 1.0 / np.sqrt(12.0))
+    return sigma
+
+
+def _laplacian_valid(img: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The valid part of the 3x3 noise-estimation mask's response."""
+    a = img[:-2, :-2] - 2 * img[:-2, 1:-1] + img[:-2, 2:]
+    b = img[1:-1, :-2] - 2 * img[1:-1, 1:-1] + img[1:-1, 2:]
+    c = img[2:, :-2] - 2 * img[2:, 1:-1] + img[2:, 2:]
+    return np.asarray(a - 2 * b + c, dtype=np.float32)
+
+
+def _seed_parameters(seed: SeedLike, origin: tuple[int, int]) -> NDArray[np.float64]:
+    """(u, v, a, b, angle) of a seed in ROI coordinates, or NaNs when it is unusable."""
+    if isinstance(seed, Ellipse):
+        p = np.array(
+            [seed.center_px[0], seed.center_px[1], seed.semi_major, seed.semi_minor, seed.angle],
+            dtype=np.float64,
+        )
+    else:
+        pts = np.asarray(seed, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise DetectorError(
+                f"a seed must be an Ellipse or (N, 2) boundary points, got shape {pts.shape}"
+            )
+        if pts.shape[0] < 5 or not np.all(np.isfinite(pts)):
+            return np.full(5, np.nan)
+        (cu, cv), (w, h), deg = cv2.fitEllipse(pts.astype(np.float32))
+        a, b, ang = 0.5 * w, 0.5 * h, np.radians(deg)
+        if b > a:
+            a, b, ang = b, a, ang + 0.5 * np.pi
+        p = np.array([cu, cv, a, b, np.mod(ang, np.pi)])
+    p[0] -= origin[0]
+    p[1] -= origin[1]
+    if not np.all(np.isfinite(p)) or p[3] <= 0 or p[2] < p[3]:
+        return np.full(5, np.nan)
+    return p
+
+
+def _band_pixels(
+    params: NDArray[np.float64], half_width: NDArray[np.float64], shape: tuple[int, int]
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+    """Pixels between the ellipses with semi-axes ``(a - m, b - m)`` and ``(a + m, b + m)``.
+
+    Returns the fit index, u and v of every such pixel (one row-run or two per image row), kept
+    one pixel away from the image border so that 3x3 derivatives are defined.
+    """
+    height, width = shape
+    u0, v0, a, b, ang = params.T
+    c, s = np.cos(ang), np.sin(ang)
+    ao, bo = a + half_width, b + half_width
+    half_h = np.sqrt((ao * s) ** 2 + (bo * c) ** 2)
+    vlo = np.clip(np.ceil(v0 - half_h), 1, height).astype(np.intp)
+    vhi = np.clip(np.floor(v0 + half_h), -1, height - 2).astype(np.intp)
+    nrows = np.where(half_width > 0, np.maximum(vhi - vlo + 1, 0), 0)
+    fit = np.repeat(np.arange(len(params)), nrows)
+    first = np.cumsum(nrows) - nrows
+    v = vlo[fit] + (np.arange(fit.size) - first[fit])
+    dv = v - v0[fit]
+
+    def row_span(
+        A: NDArray[np.float64], B: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        # Solve q11 du^2 + 2 q12 du dv + q22 dv^2 = 1 for du on each row.
+        cf, sf = c[fit], s[fit]
+        ia, ib = 1.0 / (A[fit] ** 2), 1.0 / (B[fit] ** 2)
+        q11 = cf * cf * ia + sf * sf * ib
+        q12 = cf * sf * (ia - ib)
+        q22 = sf * sf * ia + cf * cf * ib
+        disc = q12 * q12 * dv * dv - q11 * (q22 * dv * dv - 1.0)
+        root = np.sqrt(np.where(disc > 0, disc, np.nan))
+        mid = u0[fit] - q12 * dv / q11
+        return mid - root / q11, mid + root / q11
+
+    with np.errstate(invalid="ignore"):
+        olo, ohi = row_span(ao, bo)
+        inner_a = np.maximum(a - half_width, 0.0)
+        inner_b = b - half_width
+        has_inner = inner_b > 0.5
+        ilo, ihi = row_span(np.where(has_inner, inner_a, 1.0), np.where(has_inner, inner_b, 1.0))
+        ilo = np.where(has_inner[fit], ilo, np.nan)
+        ihi = np.where(has_inner[fit], ihi, np.nan)
+    hole = np.isfinite(ilo)
+    l1 = np.ceil(olo)
+    r1 = np.where(hole, np.floor(ilo), np.floor(ohi))
+    l2 = np.where(hole, np.ceil(ihi), 0.0)
+    r2 = np.where(hole, np.floor(ohi), -1.0)
+    starts = np.concatenate([l1, l2])
+    ends = np.concatenate([r1, r2])
+    starts = np.maximum(np.nan_to_num(starts, nan=1.0), 1.0)
+    ends = np.minimum(np.nan_to_num(ends, nan=-1.0), width - 2.0)
+    lengths = np.maximum(ends - starts + 1, 0).astype(np.intp)
+    run_fit = np.concatenate([fit, fit])
+    run_v = np.concatenate([v, v])
+    total = int(lengths.sum())
+    run_of = np.repeat(np.arange(lengths.size), lengths)
+    run_first = np.cumsum(lengths) - lengths
+    pu = starts.astype(np.intp)[run_of] + (np.arange(total) - run_first[run_of])
+    pv = run_v[run_of]
+    pf = run_fit[run_of]
+    order = np.argsort(pf, kind="stable")
+    return pf[order], pu[order], pv[order]
+
+
+def _gradients_at(
+    img: NDArray[np.float64], u: NDArray[np.intp], v: NDArray[np.intp]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Scharr derivatives (intensity per pixel) at pixels ``(u, v)`` (not on the border)."""
+    gu = np.zeros(u.shape)
+    gv = np.zeros(u.shape)
+    for dv, du, w in _SCHARR_U:
+        gu += (w / 32.0) * img[v + dv, u + du]
+        gv += (w / 32.0) * img[v + du, u + dv]
+    return gu, gv
+
+
+def _segments(fit: NDArray[np.intp], n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Start offset and count of each fit's pixels in the fit-sorted pixel arrays."""
+    counts = np.bincount(fit, minlength=n)
+    return np.cumsum(counts) - counts, counts
+
+
+def _segment_sum(values: NDArray[np.float64], fit: NDArray[np.intp], n: int) -> NDArray[np.float64]:
+    """Per-fit sums of ``values`` (pixels along axis 0, sorted by fit)."""
+    out = np.zeros((n, *values.shape[1:]))
+    if values.shape[0] == 0:
+        return out
+    starts, counts = _segments(fit, n)
+    present = counts > 0
+    out[present] = np.add.reduceat(values, starts[present], axis=0)
+    return out
+
+
+def fit_ellipses(
+    image: ArrayLike,
+    seeds: Sequence[SeedLike],
+    radii: Sequence[float] | float,
+    *,
+    band_px: float | None = None,
+    gradients: tuple[ArrayLike, ArrayLike] | None = None,
+    origin: tuple[int, int] = (0, 0),
+    noise_std: float | None = None,
+    dark_inside: bool | Sequence[bool | None] | None = None,
+) -> list[Ellipse | None]:
+    """Fit many ellipses in one image at once (batched :func:`fit_ellipse`).
+
+    Parameters
+    ----------
+    image : (H, W) array_like
+        Grey image (any real dtype), or an ROI crop of one whose top-left pixel is ``origin``.
+    seeds : sequence of Ellipse or (N, 2) array_like
+        Coarse estimates in full-image pixel coordinates: an :class:`Ellipse` (e.g. from
+        ``cv2.fitEllipse`` of a component boundary) or the boundary points ``(u, v)`` themselves.
+    radii : sequence of float, or float
+        Nominal radius of each printed circle (fraction of the outer radius), stored in the result.
+    band_px : float, optional
+        Half-width of the pixel band around the edge in the final iterations. Default: half the
+        seed's semi-minor axis, clipped to ``[1.5, DEFAULT_BAND_PX]`` pixels (right for blur
+        sigma up to ~1 px; narrower on small ellipses, whose neighbouring printed edges are
+        close). The first iteration adds one pixel for the seed's error.
+    gradients : (gu, gv) of (H, W) array_like, optional
+        Precomputed derivatives of ``image`` along u and v, which must be Scharr derivatives in
+        intensity per pixel (``cv2.Scharr(img, cv2.CV_32F, 1, 0) / 32``) for the covariance to
+        hold. By default they are computed only at the band's pixels, which is cheaper than
+        full-frame gradients.
+    origin : (int, int)
+        Full-image ``(u0, v0)`` of ``image[0, 0]``; results are in full-image pixels.
+    noise_std : float, optional
+        Standard deviation of the image noise in ``image``'s intensity units; estimated with
+        :func:`estimate_noise` when omitted. Scales the returned covariances.
+    dark_inside : bool or sequence of (bool or None), optional
+        Polarity of each edge (True: dark inside the ellipse, as ``design.Circle.dark_inside``).
+        Pixels of the other polarity are ignored. When omitted it is voted by the gradients
+        nearest the seed; giving it makes thin annuli (two close edges) safe.
+
+    Returns
+    -------
+    list of Ellipse or None
+        One per seed; None where the fit is degenerate (too few edge pixels, not an ellipse,
+        non-finite values, or the seed is unusable).
+
+    Raises
+    ------
+    DetectorError
+        If ``image`` is not 2-D, a seed has the wrong shape, or ``radii`` does not match.
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise DetectorError(f"image must be 2-D (grey), got shape {img.shape}")
+    if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
+        raise DetectorError(f"image must have a real dtype, got {img.dtype}")
+    n = len(seeds)
+    radius_arr = np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,))
+    if gradients is not None:
+        gshape = tuple(np.shape(g) for g in gradients)
+        if len(gshape) != 2 or any(s != img.shape for s in gshape):
+            raise DetectorError(f"gradients must be two arrays of shape {img.shape}, got {gshape}")
+    if band_px is not None and not band_px > 0.5:
+        raise DetectorError(f"band_px must be > 0.5 pixel, got {band_px}")
+    if n == 0:
+        return []
+    if min(img.shape) < 5:
+        return [None] * n
+    imgf = np.asarray(img, dtype=np.float64)
+    sigma = estimate_noise(imgf) if noise_std is None else float(noise_std)
+    if np.issubdtype(img.dtype, np.integer) and noise_std is None:
+        sigma = max(sigma, 1.0 / np.sqrt(12.0))
+    grads = None
+    if gradients is not None:
+        grads = (np.asarray(gradients[0]), np.asarray(gradients[1]))
+    params = np.array([_seed_parameters(s, origin) for s in seeds]).reshape(n, 5)
+    ok = np.all(np.isfinite(params), axis=1)
+    params[~ok] = np.array([0.0, 0.0, 1.0, 1.0, 0.0])
+    if dark_inside is None:
+        sign = np.full(n, np.nan)
+    else:
+        flags = np.broadcast_to(np.asarray(dark_inside, dtype=object), (n,))
+        sign = np.array([np.nan if f is None else (1.0 if f else -1.0) for f in flags])
+    if band_px is None:
+        # Narrow the band on small ellipses, whose neighbouring printed edges are close.
+        band = np.clip(0.5 * params[:, 3], _MIN_BAND_PX, DEFAULT_BAND_PX)
+    else:
+        band = np.full(n, float(band_px))
+    state: _FitState | None = None
+    for it in range(_ITERATIONS):
+        half = band + (_SEED_SLACK_PX if it == 0 else 0.0)
+        state = _fit_once(imgf, params, np.where(ok, half, 0.0), ok, grads, sign)
+        ok &= state.ok
+        params = np.where(ok[:, None], state.params, params)
+    assert state is not None
+    cov = _covariances(state, sigma)
+    results: list[Ellipse | None] = []
+    for j in range(n):
+        if not ok[j] or not np.all(np.isfinite(cov[j])):
+            results.append(None)
+            continue
+        u, v, a, b, ang = state.params[j]
+        results.append(
+            Ellipse(
+                center_px=(float(u + origin[0]), float(v + origin[1])),
+                semi_major=float(a),
+                semi_minor=float(b),
+                angle=float(ang),
+                covariance=cov[j],
+                radius=float(radius_arr[j]),
+                rms_residual=float(state.rms[j]),
+            )
+        )
+    return results
+
+
+def fit_ellipse(
+    image: ArrayLike,
+    seed: SeedLike,
+    *,
+    radius: float,
+    band_px: float | None = None,
+    gradients: tuple[ArrayLike, ArrayLike] | None = None,
+    origin: tuple[int, int] = (0, 0),
+    noise_std: float | None = None,
+    dark_inside: bool | None = None,
+) -> Ellipse | None:
+    """Fit one ellipse to the image gradients around a seed (Ouellet & Hébert dual conic).
+
+    Parameters
+    ----------
+    image : (H, W) array_like
+        Grey image, or an ROI crop of one whose top-left pixel is ``origin`` (full-image
+        ``(u0, v0)``). Pixel centres at integer coordinates.
+    seed : Ellipse or (N, 2) array_like
+        Coarse ellipse, or boundary points ``(u, v)``, in full-image pixels.
+    radius : float
+        Nominal radius of the printed circle (fraction of the outer radius), stored in the result.
+    band_px, gradients, origin, noise_std, dark_inside
+        See :func:`fit_ellipses`.
+
+    Returns
+    -------
+    Ellipse or None
+        The fitted ellipse in full-image pixels with the covariance of
+        ``(u, v, semi_major, semi_minor, angle)``; None for a degenerate fit.
+    """
+    return fit_ellipses(
+        image,
+        [seed],
+        [radius],
+        band_px=band_px,
+        gradients=gradients,
+        origin=origin,
+        noise_std=noise_std,
+        dark_inside=dark_inside,
+    )[0]
+
+
+class _FitState:
+    """Per-pixel and per-fit quantities of one dual-conic solve, kept for the covariance."""
+
+    __slots__ = (
+        "M",
+        "P",
+        "W",
+        "c",
+        "fit",
+        "gmag",
+        "nu",
+        "nv",
+        "ok",
+        "params",
+        "pu",
+        "pv",
+        "r",
+        "rms",
+        "scale",
+        "theta",
+        "x",
+        "y",
+    )
+
+    def __init__(self, **kw: NDArray[np.float64] | NDArray[np.intp] | NDArray[np.bool_]) -> None:
+        for k, val in kw.items():
+            setattr(self, k, val)
+
+    M: NDArray[np.float64]
+    P: NDArray[np.float64]
+    W: NDArray[np.float64]
+    c: NDArray[np.float64]
+    fit: NDArray[np.intp]
+    gmag: NDArray[np.float64]
+    nu: NDArray[np.float64]
+    nv: NDArray[np.float64]
+    ok: NDArray[np.bool_]
+    params: NDArray[np.float64]
+    pu: NDArray[np.intp]
+    pv: NDArray[np.intp]
+    r: NDArray[np.float64]
+    rms: NDArray[np.float64]
+    scale: NDArray[np.float64]
+    theta: NDArray[np.float64]
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+
+
+# Index pairs of the 15 distinct entries of a symmetric 5x5 matrix.
+_IU = np.triu_indices(5)
+
+
+def _dual_to_conics(theta: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Conic matrices ``inv(C*)`` of dual conics ``theta = (A, B, C, D, E)`` with ``C*_33 = 1``."""
+    A, B, Cc, D, E = theta.T
+    dual = np.empty((len(theta), 3, 3))
+    dual[:, 0, 0], dual[:, 1, 1], dual[:, 2, 2] = A, Cc, 1.0
+    dual[:, 0, 1] = dual[:, 1, 0] = 0.5 * B
+    dual[:, 0, 2] = dual[:, 2, 0] = 0.5 * D
+    dual[:, 1, 2] = dual[:, 2, 1] = 0.5 * E
+    det = np.linalg.det(dual)
+    good = np.isfinite(det) & (np.abs(det) > 1e-300)
+    out = np.full_like(dual, np.nan)
+    if np.any(good):
+        out[good] = np.linalg.inv(dual[good])
+    return out
+
+
+def _fit_once(
+    img: NDArray[np.float64],
+    params: NDArray[np.float64],
+    half: NDArray[np.float64],
+    ok: NDArray[np.bool_],
+    gradients: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+    sign: NDArray[np.float64],
+) -> _FitState:
+    """One weighted dual-conic solve for every fit, with the band around ``params``."""
+    n = len(params)
+    fit, pu, pv = _band_pixels(params, half, img.shape)
+    if gradients is None:
+        gu, gv = _gradients_at(img, pu, pv)
+    else:
+        gu, gv = gradients[0][pv, pu].astype(np.float64), gradients[1][pv, pu].astype(np.float64)
+    finite = np.isfinite(gu) & np.isfinite(gv)
+    bad = np.bincount(fit[~finite], minlength=n) > 0
+    gu, gv = np.where(finite, gu, 0.0), np.where(finite, gv, 0.0)
+    # Centre and scale coordinates on the current estimate for conditioning ([1], section 3).
+    u0, v0, a, b, ang = params.T
+    scale = a.copy()
+    x = (pu - u0[fit]) / scale[fit]
+    y = (pv - v0[fit]) / scale[fit]
+    cs, sn = np.cos(ang), np.sin(ang)
+    ia, ib = (scale / a) ** 2, (scale / b) ** 2
+    q11 = cs * cs * ia + sn * sn * ib
+    q12 = cs * sn * (ia - ib)
+    q22 = sn * sn * ia + cs * cs * ib
+    # Sampson distance to the current ellipse, and its normal direction.
+    fx = q11[fit] * x + q12[fit] * y
+    fy = q12[fit] * x + q22[fit] * y
+    fval = x * fx + y * fy - 1.0
+    glen = 2.0 * np.hypot(fx, fy)
+    dist = fval / np.maximum(glen, 1e-12) * scale[fit]
+    gmag = np.hypot(gu, gv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nu, nv = gu / gmag, gv / gmag
+        cosang = (nu * fx + nv * fy) * 2.0 / glen
+    cosang = np.nan_to_num(cosang)
+    hw = half[fit]
+    inband = np.abs(dist) < hw
+    # Polarity of the edge (+1: dark inside, gradients point outwards): given, or voted by the
+    # gradients nearest the current ellipse (a neighbouring edge of the other polarity, such as
+    # the other side of a thin annulus, must not win the vote).
+    vote = _segment_sum(np.where(inband, gmag * cosang * np.exp(-0.5 * dist * dist), 0.0), fit, n)
+    polarity = np.where(np.isnan(sign), np.where(vote >= 0, 1.0, -1.0), sign)
+    keep = inband & (polarity[fit] * cosang > _MIN_COS) & (gmag > 0)
+    # Weights: squared gradient magnitude ([1]), tapered to zero at the band's edge.
+    t = dist / hw
+    W = np.where(keep, gmag**_GPOW * (1.0 - t * t) ** _TAPER, 0.0)
+    sel = np.flatnonzero(keep)
+    fit, pu, pv = fit[sel], pu[sel], pv[sel]
+    x, y, nu, nv, W, gmag = x[sel], y[sel], nu[sel], nv[sel], W[sel], gmag[sel]
+    counts = np.bincount(fit, minlength=n)
+    c = -(nu * x + nv * y)
+    P = np.column_stack([nu * nu, nu * nv, nv * nv, nu * c, nv * c])
+    prods = np.empty((len(sel), 21))
+    prods[:, :15] = W[:, None] * P[:, _IU[0]] * P[:, _IU[1]]
+    prods[:, 15:20] = -(W * c * c)[:, None] * P
+    prods[:, 20] = W
+    sums = _segment_sum(prods, fit, n)
+    M = np.zeros((n, 5, 5))
+    M[:, _IU[0], _IU[1]] = sums[:, :15]
+    M[:, _IU[1], _IU[0]] = sums[:, :15]
+    rhs = sums[:, 15:20]
+    good = ok & ~bad & (counts >= _MIN_PIXELS)
+    theta = np.full((n, 5), np.nan)
+    if np.any(good):
+        Mg = M[good]
+        # Condition check before solving: a near-singular system is a degenerate fit.
+        cond = np.linalg.cond(Mg)
+        solvable = np.isfinite(cond) & (cond < 1e12)
+        idx = np.flatnonzero(good)[solvable]
+        if idx.size:
+            theta[idx] = np.linalg.solve(M[idx], rhs[idx][:, :, None])[:, :, 0]
+    ell = _ellipses_from_conics(_dual_to_conics(np.nan_to_num(theta, nan=0.0)))
+    ell[~np.all(np.isfinite(theta), axis=1)] = np.nan
+    new = np.column_stack(
+        [u0 + scale * ell[:, 0], v0 + scale * ell[:, 1], scale * ell[:, 2], scale * ell[:, 3]]
+    )
+    new = np.column_stack([new, ell[:, 4]])
+    r = np.einsum("ij,ij->i", P, np.nan_to_num(theta)[fit]) + c * c
+    wsum = sums[:, 20]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rms = np.sqrt(_segment_sum(W * r * r, fit, n) / wsum)
+    fine = good & np.all(np.isfinite(new), axis=1) & (new[:, 3] > 0.25)
+    return _FitState(
+        M=M,
+        P=P,
+        W=W,
+        c=c,
+        fit=fit,
+        gmag=gmag,
+        nu=nu,
+        nv=nv,
+        ok=fine,
+        params=new,
+        pu=pu,
+        pv=pv,
+        r=r,
+        rms=rms,
+        scale=scale,
+        theta=theta,
+        x=x,
+        y=y,
+    )
+
+
+def _sensitivities(st: _FitState) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per-pixel ``d(W p r)/d g`` (two (N, 5) arrays, for g_u and g_v): how a perturbation of the
+    pixel's gradient moves the normal equations (first order, at the solution)."""
+    theta = np.nan_to_num(st.theta)[st.fit]
+    nu, nv, x, y, c, W, r, P = st.nu, st.nv, st.x, st.y, st.c, st.W, st.r, st.P
+    zero = np.zeros_like(nu)
+    # dp/dn for p = (nu^2, nu nv, nv^2, nu c, nv c), c = -(nu x + nv y): columns d/dnu, d/dnv.
+    dp_du = np.column_stack([2 * nu, nv, zero, c - nu * x, -nv * x])
+    dp_dv = np.column_stack([zero, nu, 2 * nv, -nu * y, c - nv * y])
+    dr_du = np.einsum("ij,ij->i", dp_du, theta) - 2 * c * x
+    dr_dv = np.einsum("ij,ij->i", dp_dv, theta) - 2 * c * y
+    # Chain through n = g/|g|: dn/dg = (I - n n^T)/|g|; and W = |g|^2 taper: dW/dg = 2 W n / |g|.
+    inv = 1.0 / st.gmag
+    a11, a12, a22 = (1 - nu * nu) * inv, -nu * nv * inv, (1 - nv * nv) * inv
+    dpg_u = dp_du * a11[:, None] + dp_dv * a12[:, None]
+    dpg_v = dp_du * a12[:, None] + dp_dv * a22[:, None]
+    drg_u = dr_du * a11 + dr_dv * a12
+    drg_v = dr_du * a12 + dr_dv * a22
+    dWg_u, dWg_v = 2 * W * nu * inv, 2 * W * nv * inv
+    Vu = P * (r * dWg_u + W * drg_u)[:, None] + dpg_u * (W * r)[:, None]
+    Vv = P * (r * dWg_v + W * drg_v)[:, None] + dpg_v * (W * r)[:, None]
+    return Vu, Vv
+
+
+def _covariances(st: _FitState, sigma: float) -> NDArray[np.float64]:
+    """(n, 5, 5) covariances of (u, v, a, b, angle) from image noise ``sigma`` (first order)."""
+    n = len(st.params)
+    out = np.full((n, 5, 5), np.nan)
+    if st.fit.size == 0 or not np.isfinite(sigma):
+        return out
+    Vu, Vv = _sensitivities(st)
+    # The gradients are Scharr filters of the image, so d theta / d I_k = -M^-1 G_k with
+    # G = V_u * K_u + V_v * K_v (convolution). Scatter into one flat canvas holding a padded
+    # ROI per fit so neighbouring pixels of the same fit add up and different fits never mix.
+    umin = np.full(n, np.iinfo(np.intp).max)
+    vmin = np.full(n, np.iinfo(np.intp).max)
+    np.minimum.at(umin, st.fit, st.pu)
+    np.minimum.at(vmin, st.fit, st.pv)
+    umax = np.full(n, -1)
+    vmax = np.full(n, -1)
+    np.maximum.at(umax, st.fit, st.pu)
+    np.maximum.at(vmax, st.fit, st.pv)
+    present = umax >= 0
+    stride = np.where(present, umax - umin + 3, 0)
+    area = np.where(present, (vmax - vmin + 3) * stride, 0)
+    offset = np.cumsum(area) - area
+    f = st.fit
+    base = offset[f] + (st.pv - vmin[f] + 1) * stride[f] + (st.pu - umin[f] + 1)
+    keys = []
+    vals = []
+    for dv, du, w in _SCHARR_U:
+        # g_u at pixel i reads I[i + (dv, du)] with weight w/32; g_v reads I[i + (du, dv)].
+        keys.append(base + dv * stride[f] + du)
+        vals.append((w / 32.0) * Vu)
+        keys.append(base + du * stride[f] + dv)
+        vals.append((w / 32.0) * Vv)
+    key = np.concatenate(keys)
+    val = np.concatenate(vals)
+    total = int(area.sum())
+    G = np.column_stack([np.bincount(key, weights=val[:, k], minlength=total) for k in range(5)])
+    owner = np.repeat(np.arange(n), area)
+    prods = G[:, _IU[0]] * G[:, _IU[1]]
+    S = np.zeros((n, 5, 5))
+    s15 = _segment_sum(prods, owner, n)
+    S[:, _IU[0], _IU[1]] = s15
+    S[:, _IU[1], _IU[0]] = s15
+    good = st.ok & present
+    if not np.any(good):
+        return out
+    Minv = np.linalg.inv(st.M[good])
+    cov_theta = sigma * sigma * Minv @ S[good] @ Minv
+    J = _jacobian(st.theta[good], st.scale[good])
+    out[good] = J @ cov_theta @ np.swapaxes(J, 1, 2)
+    return out
+
+
+def _jacobian(theta: NDArray[np.float64], scale: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(m, 5, 5) Jacobian of pixel-unit (u, v, a, b, angle) w.r.t. the dual conic parameters."""
+    m = len(theta)
+    h = 1e-6 * np.maximum(np.abs(theta), 1e-3)
+    steps = np.zeros((m, 10, 5))
+    for k in range(5):
+        steps[:, 2 * k, k] = h[:, k]
+        steps[:, 2 * k + 1, k] = -h[:, k]
+    pert = (theta[:, None, :] + steps).reshape(-1, 5)
+    ell = _ellipses_from_conics(_dual_to_conics(pert)).reshape(m, 5, 2, 5)
+    diff = ell[:, :, 0, :] - ell[:, :, 1, :]  # (m, param k, output)
+    # The angle wraps at 0 / pi: take the difference modulo pi.
+    diff[:, :, 4] = (diff[:, :, 4] + 0.5 * np.pi) % np.pi - 0.5 * np.pi
+    J = np.swapaxes(diff / (2.0 * h[:, :, None]), 1, 2)  # (m, output, param)
+    J[:, :4, :] *= scale[:, None, None]
+    return J

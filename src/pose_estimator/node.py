@@ -1,0 +1,239 @@
+"""ROS 2 node ``pose_estimator``: per-frame detections + camera -> per-frame 3-D fiducial poses.
+
+A thin shell around :func:`pose_estimator.estimate` (paper section 4): decode the detector's
+``FiducialDetectionRecord`` cloud, estimate each fiducial's position, normal and covariance in
+the camera frame, publish them as ``FiducialPoseRecord`` rows and, for viewers, as a PoseArray.
+Output headers are the input's (the image's stamp and frame_id).
+
+Topics
+------
+Subscribed
+    ``detections_topic`` (default ``/armourcam/detections``), ``sensor_msgs/PointCloud2``
+    (FiducialDetectionRecord rows), QoS per ``qos`` (``reliable`` / ``sensor_data``),
+    KEEP_LAST ``queue_depth``.
+    ``camera_info_topic`` (default ``/camera/camera_info``), ``sensor_msgs/CameraInfo``, same
+    QoS; not subscribed when ``calibration_file`` is set (camera_calibration YAML).
+Published
+    ``poses_topic`` (default ``/armourcam/poses``), ``sensor_msgs/PointCloud2`` of
+    ``FiducialPoseRecord`` rows (mm, camera optical frame), QoS as the input.
+    ``pose_array_topic`` (default ``/armourcam/pose_array``), ``geometry_msgs/PoseArray``:
+    the same poses for RViz/Foxglove in **metres** (REP 103), orientation = rotation taking
+    +z to the fiducial's normal; QoS as the input.
+    ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``: frames, drops, camera state.
+
+Detections that arrive before any camera info are held (at most ``pending_limit`` frames, oldest
+dropped with a warning) and processed as soon as the camera is known. A frame whose records are
+malformed, or whose pose estimation fails, is logged and dropped; the node lives on.
+
+Parameters: see :data:`PARAMS`.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Pose, PoseArray
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, PointCloud2, PointField
+
+from armourcam import records
+from armourcam.graph import GraphError, Param, declare_parameters, run_node, stream_qos
+
+from .camera import CameraModel
+from .errors import CalibrationError
+from .estimate import estimate
+from .types import FiducialPose
+
+PARAMS = (
+    Param("detections_topic", "/armourcam/detections", "Input: detections (PointCloud2)."),
+    Param("camera_info_topic", "/camera/camera_info", "Input: sensor_msgs/CameraInfo."),
+    Param(
+        "calibration_file",
+        "",
+        "camera_calibration YAML; when set, camera_info_topic is not used.",
+    ),
+    Param("poses_topic", "/armourcam/poses", "Output: FiducialPoseRecord rows (PointCloud2)."),
+    Param("pose_array_topic", "/armourcam/pose_array", "Output: geometry_msgs/PoseArray (m)."),
+    Param(
+        "qos",
+        "reliable",
+        "QoS of inputs and outputs: reliable for replay, sensor_data for a live camera.",
+        choices=("reliable", "sensor_data"),
+    ),
+    Param("queue_depth", 10, "KEEP_LAST depth of input and output queues.", minimum=1),
+    Param(
+        "diameter_mm",
+        7.1,
+        "Printed diameter of the fiducials' outer circle, mm.",
+        read_only=False,
+        minimum=0.1,
+    ),
+    Param("pending_limit", 100, "Frames held while waiting for camera info.", minimum=1),
+    Param("diagnostics_period_s", 1.0, "Period of /diagnostics, s.", minimum=0.1),
+)
+
+
+@dataclass(frozen=True, slots=True)
+class PoseNodeConfig:
+    """Validated parameters of the node (see :data:`PARAMS`)."""
+
+    detections_topic: str
+    camera_info_topic: str
+    calibration_file: str
+    poses_topic: str
+    pose_array_topic: str
+    qos: str
+    queue_depth: int
+    diameter_mm: float
+    pending_limit: int
+    diagnostics_period_s: float
+
+
+def _normal_quaternion(n: np.ndarray) -> tuple[float, float, float, float]:
+    """Quaternion ``(x, y, z, w)`` of the shortest rotation taking +z to the unit vector ``n``."""
+    z = np.array([0.0, 0.0, 1.0])
+    n = n / (np.linalg.norm(n) or 1.0)
+    w = 1.0 + float(z @ n)
+    if w < 1e-9:  # n = -z: half turn about x
+        return (1.0, 0.0, 0.0, 0.0)
+    axis = np.cross(z, n)
+    q = np.array([axis[0], axis[1], axis[2], w])
+    q /= np.linalg.norm(q)
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
+def pose_array(header: Any, poses: list[FiducialPose]) -> PoseArray:
+    """PoseArray (metres) of fiducial poses (mm)."""
+    out = PoseArray(header=header)
+    for p in poses:
+        m = Pose()
+        x, y, z = (float(c) / 1000.0 for c in p.position_mm)
+        m.position.x, m.position.y, m.position.z = x, y, z
+        qx, qy, qz, qw = _normal_quaternion(np.asarray(p.normal, dtype=np.float64))
+        m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w = qx, qy, qz, qw
+        out.poses.append(m)
+    return out
+
+
+class PoseEstimatorNode(Node):
+    """Detections + camera in, poses out."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("pose_estimator", **kwargs)
+        self.config = PoseNodeConfig(**declare_parameters(self, PARAMS))
+        cfg = self.config
+        self.camera: CameraModel | None = None
+        if cfg.calibration_file:
+            try:
+                self.camera = CameraModel.from_yaml(cfg.calibration_file)
+            except CalibrationError as err:
+                raise GraphError(f"pose_estimator: calibration_file: {err}") from err
+        qos = stream_qos(cfg.qos, cfg.queue_depth)
+        self._pub = self.create_publisher(PointCloud2, cfg.poses_topic, qos)
+        self._pub_array = self.create_publisher(PoseArray, cfg.pose_array_topic, qos)
+        self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(PointCloud2, cfg.detections_topic, self._on_detections, qos)
+        if self.camera is None:
+            self.create_subscription(CameraInfo, cfg.camera_info_topic, self._on_camera_info, qos)
+        self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
+        self._pending: deque[PointCloud2] = deque()
+        self.received = self.published = self.dropped = 0
+        self.last_error = ""
+        self.last_ms = 0.0
+        source = cfg.calibration_file or cfg.camera_info_topic
+        self.get_logger().info(
+            f"poses from {cfg.detections_topic} with camera from {source} -> {cfg.poses_topic}, "
+            f"{cfg.pose_array_topic}"
+        )
+
+    def _diameter(self) -> float:
+        value = self.get_parameter("diameter_mm").value
+        return float(value) if value else self.config.diameter_mm
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            camera = CameraModel.from_camera_info(
+                msg.width, msg.height, msg.k, msg.distortion_model, msg.d
+            )
+        except CalibrationError as err:
+            self.last_error = f"camera info rejected: {err}"
+            self.get_logger().error(self.last_error, throttle_duration_sec=5.0)
+            return
+        first = self.camera is None
+        self.camera = camera
+        if first:
+            self.get_logger().info(f"camera {camera.width}x{camera.height} from camera info")
+            while self._pending:
+                self._process(self._pending.popleft())
+
+    def _on_detections(self, msg: PointCloud2) -> None:
+        self.received += 1
+        if self.camera is None:
+            self._pending.append(msg)
+            if len(self._pending) > self.config.pending_limit:
+                self._pending.popleft()
+                self.dropped += 1
+                self.get_logger().warning(
+                    "no camera info yet: oldest held frame dropped", throttle_duration_sec=5.0
+                )
+            return
+        self._process(msg)
+
+    def _process(self, msg: PointCloud2) -> None:
+        assert self.camera is not None
+        t0 = time.perf_counter()
+        try:
+            dets = records.records_to_detections(records.from_pointcloud2(msg, records.DETECTION))
+            poses = estimate(dets, self.camera, self._diameter())
+            rows = records.poses_to_records(poses, dets)
+        except Exception as err:  # noqa: BLE001 - one bad frame must not take the node down
+            self.dropped += 1
+            kind = "" if isinstance(err, ValueError) else f"{type(err).__name__}: "
+            self.last_error = f"frame dropped: {kind}{err}"
+            self.get_logger().error(self.last_error)
+            return
+        self._pub.publish(
+            records.to_pointcloud2(PointCloud2, PointField, msg.header, records.POSE, rows)
+        )
+        self._pub_array.publish(pose_array(msg.header, poses))
+        self.published += 1
+        self.last_ms = 1e3 * (time.perf_counter() - t0)
+
+    def _publish_diagnostics(self) -> None:
+        ok = self.camera is not None and not self.dropped
+        cam = f"{self.camera.width}x{self.camera.height}" if self.camera else "waiting"
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
+            name="armourcam: pose_estimator",
+            message=self.last_error or ("ok" if self.camera else "waiting for camera info"),
+            hardware_id=self.config.calibration_file or self.config.camera_info_topic,
+            values=[
+                KeyValue(key="camera", value=cam),
+                KeyValue(key="frames_received", value=str(self.received)),
+                KeyValue(key="frames_published", value=str(self.published)),
+                KeyValue(key="frames_dropped", value=str(self.dropped)),
+                KeyValue(key="frames_pending", value=str(len(self._pending))),
+                KeyValue(key="last_frame_ms", value=f"{self.last_ms:.1f}"),
+            ],
+        )
+        arr = DiagnosticArray(status=[status])
+        arr.header.stamp = self.get_clock().now().to_msg()
+        self._diag.publish(arr)
+
+
+NODE_CLASS = PoseEstimatorNode
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script ``pose_estimator``."""
+    return run_node(PoseEstimatorNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

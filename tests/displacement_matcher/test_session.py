@@ -1,0 +1,288 @@
+"""Tests of the hall-automation state machine (no rclpy)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from displacement_matcher.session import (
+    BaselineCaptured,
+    Event,
+    Phase,
+    RunCompleted,
+    Session,
+    SessionConfig,
+    SessionError,
+    frames_agree,
+)
+from pose_estimator.types import FiducialPose
+
+SIGMA = np.array([0.02, 0.02, 0.1])  # mm, per-frame noise of x, y, z
+
+
+def mean_fuse(frames: Sequence[Sequence[FiducialPose]]) -> list[FiducialPose]:
+    """Reference fusion for the state-machine tests: same-code nearest partner, plain mean."""
+    first = frames[-1]
+    out = []
+    for p in first:
+        pts = [p.position_mm]
+        for f in frames[:-1]:
+            cand = [q for q in f if q.code == p.code]
+            if cand:
+                q = min(cand, key=lambda q: np.linalg.norm(q.position_mm - p.position_mm))
+                if np.linalg.norm(q.position_mm - p.position_mm) < 1.0:
+                    pts.append(q.position_mm)
+        n = len(pts)
+        out.append(
+            FiducialPose(p.code, np.mean(pts, axis=0), p.normal, p.covariance_mm2 / n, None, n)
+        )
+    return out
+
+
+def scene(n: int = 40, seed: int = 1) -> np.ndarray:
+    """True fiducial centres (mm, camera frame) of a field about 800 mm away, 25 mm apart."""
+    rng = np.random.default_rng(seed)
+    side = int(np.ceil(np.sqrt(n)))
+    g = np.array([(i % side, i // side) for i in range(n)], dtype=float) * 25.0 - 100.0
+    z = 800.0 + rng.uniform(-20, 20, n)
+    return np.column_stack([g, z])
+
+
+def frame(truth: np.ndarray, rng: np.random.Generator, drop: int = 0) -> list[FiducialPose]:
+    """One noisy observation of ``truth`` (codes cycle 0..3 like a dolos' four codes)."""
+    cov = np.diag(SIGMA**2)
+    keep = np.arange(len(truth))
+    if drop:
+        keep = np.sort(rng.choice(len(truth), len(truth) - drop, replace=False))
+    return [
+        FiducialPose(
+            int(i % 4),
+            truth[i] + rng.normal(0.0, SIGMA),
+            np.array([0.0, 0.0, -1.0]),
+            cov,
+        )
+        for i in keep
+    ]
+
+
+def feed(session: Session, frames: list[list[FiducialPose]], t0: float) -> list[Event]:
+    events: list[Event] = []
+    for k, f in enumerate(frames):
+        events += session.add_frame(f, t0 + 0.2 * k)
+    return events
+
+
+def of_type(events: list[Event], cls: type) -> list:
+    return [e for e in events if isinstance(e, cls)]
+
+
+@pytest.fixture()
+def rng() -> np.random.Generator:
+    return np.random.default_rng(1234)
+
+
+def make(tmp_path: Path | None = None, **kw: object) -> Session:
+    cfg = SessionConfig(data_dir=tmp_path, **kw)  # type: ignore[arg-type]
+    return Session(cfg, fuse=mean_fuse)
+
+
+def moved(truth: np.ndarray, idx: Sequence[int], delta: Sequence[float]) -> np.ndarray:
+    out = truth.copy()
+    out[list(idx)] += np.asarray(delta, dtype=float)
+    return out
+
+
+def disp_by_before(report: dict, truth_before: np.ndarray) -> dict[int, np.ndarray]:
+    """Measured displacement of each baseline fiducial, keyed by its index in ``truth_before``."""
+    out = {}
+    for f in report["fiducials"]:
+        if f["displacement_mm"] is None:
+            continue
+        i = int(np.argmin(np.linalg.norm(truth_before - np.array(f["before_mm"]), axis=1)))
+        out[i] = np.array(f["displacement_mm"])
+    return out
+
+
+def test_auto_baseline_waits_for_a_settled_scene(rng: np.random.Generator) -> None:
+    truth = scene()
+    s = make(baseline_frames=5)
+    # A camera still being set up: the scene jumps 3 mm between frames -> no baseline.
+    shaky = [frame(truth + np.array([3.0 * k, 0, 0]), rng) for k in range(6)]
+    assert not of_type(feed(s, shaky, 0.0), BaselineCaptured)
+    assert s.phase == Phase.WAITING_BASELINE
+    events = feed(s, [frame(truth, rng) for _ in range(5)], 10.0)
+    (cap,) = of_type(events, BaselineCaptured)
+    assert cap.baseline.n_frames == 5 and cap.baseline.reason == "auto"
+    got = np.array([p.position_mm for p in cap.baseline.poses])
+    err = np.linalg.norm(got - truth, axis=1)
+    assert err.max() < 0.3  # fused over 5 frames of 0.1 mm z noise
+    assert s.phase == Phase.MONITORING
+
+
+def test_run_cycle_reports_cumulative_and_incremental(rng: np.random.Generator) -> None:
+    truth0 = scene()
+    s = make(baseline_frames=3, settle_frames=3)
+    feed(s, [frame(truth0, rng) for _ in range(3)], 0.0)
+    assert s.baseline is not None
+
+    # Run 1: fiducials 0-3 (one unit) move 12 mm along x.
+    truth1 = moved(truth0, [0, 1, 2, 3], [12.0, 0.0, 0.0])
+    s.set_run_id("storm-A")
+    s.set_run_active(True, 1.0)
+    assert s.phase == Phase.RUN_ACTIVE
+    # During the run the scene moves: nothing is measured.
+    assert not feed(s, [frame(truth0 + rng.normal(0, 5, truth0.shape), rng) for _ in range(4)], 1.1)
+    s.set_run_active(False, 2.0)
+    assert s.phase == Phase.SETTLING
+    # Still wobbling for two frames, then settled.
+    wobble = [frame(moved(truth1, [5], [2.0 * k, 0, 0]), rng) for k in range(1, 3)]
+    assert not of_type(feed(s, wobble, 2.1), RunCompleted)
+    (done,) = of_type(feed(s, [frame(truth1, rng) for _ in range(3)], 3.0), RunCompleted)
+    run = done.run
+    assert run.run_id == "storm-A" and run.sequence == 1
+    assert run.report["settled"] is True and run.report["frames_fused"] == 3
+    assert run.report["incremental"] is None
+    d = disp_by_before(run.report, truth0)
+    for i in range(len(truth0)):
+        want = truth1[i] - truth0[i]
+        assert np.linalg.norm(d[i] - want) < 0.5, (i, d[i], want)
+    assert sum(m.kind == "arrow" for m in run.markers) == len(truth0)
+    assert len(run.rows) == len(run.report["fiducials"])
+
+    # Run 2 (no id announced): fiducial 10 moves 6 mm along y.
+    truth2 = moved(truth1, [10], [0.0, 6.0, 0.0])
+    s.set_run_active(True, 5.0)
+    s.set_run_active(False, 6.0)
+    (done2,) = of_type(feed(s, [frame(truth2, rng) for _ in range(3)], 6.1), RunCompleted)
+    run2 = done2.run
+    assert run2.run_id == "run-002"
+    cum = disp_by_before(run2.report, truth0)
+    assert np.linalg.norm(cum[0] - [12.0, 0, 0]) < 0.5  # cumulative keeps run 1's motion
+    assert np.linalg.norm(cum[10] - [0, 6.0, 0]) < 0.5
+    inc = disp_by_before(run2.report["incremental"], truth1)
+    assert np.linalg.norm(inc[0]) < 0.5  # incremental: unit 0 did not move in run 2
+    assert np.linalg.norm(inc[10] - [0, 6.0, 0]) < 0.5
+
+
+def test_frames_stamped_before_the_stop_are_not_used(rng: np.random.Generator) -> None:
+    truth0 = scene()
+    s = make(baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    truth1 = moved(truth0, [7], [0.0, 0.0, 9.0])
+    s.set_run_active(True, 10.0)
+    s.set_run_active(False, 20.0)
+    # Frames still in the pipeline when the stop arrived: stamped before it, scene mid-run.
+    late = [frame(truth0 + np.array([30.0, 0, 0]), rng) for _ in range(3)]
+    assert not feed(s, late, 19.0)
+    (done,) = of_type(feed(s, [frame(truth1, rng) for _ in range(2)], 20.5), RunCompleted)
+    d = disp_by_before(done.run.report, truth0)
+    assert np.linalg.norm(d[7] - [0, 0, 9.0]) < 0.5
+
+
+def test_settle_timeout_reports_unsettled(rng: np.random.Generator) -> None:
+    truth0 = scene(16)
+    s = make(baseline_frames=2, settle_frames=3, settle_timeout_frames=6)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    creeping = [frame(truth0 + np.array([1.0 * k, 0, 0]), rng) for k in range(1, 7)]
+    events = feed(s, creeping, 3.0)
+    (done,) = of_type(events, RunCompleted)
+    assert done.run.report["settled"] is False
+    assert s.phase == Phase.MONITORING
+
+
+def test_capture_command_replaces_the_baseline(rng: np.random.Generator) -> None:
+    truth0 = scene(16)
+    s = make(baseline_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    shifted = truth0 + np.array([0.0, 0.0, 40.0])  # the camera was moved back
+    s.capture_baseline()
+    assert s.phase == Phase.CAPTURING_BASELINE
+    (cap,) = of_type(feed(s, [frame(shifted, rng) for _ in range(2)], 5.0), BaselineCaptured)
+    assert cap.baseline.reason == "command"
+    z = np.array([p.position_mm[2] for p in cap.baseline.poses])
+    assert np.allclose(np.sort(z), np.sort(shifted[:, 2]), atol=0.3)
+
+
+def test_run_before_any_baseline_uses_the_frames_seen(rng: np.random.Generator) -> None:
+    truth0 = scene(16)
+    s = make(baseline_frames=5)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)  # too few for the auto baseline
+    assert s.baseline is None
+    events = s.set_run_active(True, 1.0)
+    (cap,) = of_type(events, BaselineCaptured)
+    assert cap.baseline.n_frames == 2
+
+
+def test_state_survives_a_restart(tmp_path: Path, rng: np.random.Generator) -> None:
+    truth0 = scene()
+    s = make(tmp_path, baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    truth1 = moved(truth0, [3], [5.0, 0, 0])
+    s.set_run_id("R1")
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    feed(s, [frame(truth1, rng) for _ in range(2)], 2.5)
+    assert (tmp_path / "baseline.json").is_file()
+    run_files = sorted((tmp_path / "runs").glob("*.json"))
+    assert [p.name for p in run_files] == ["0001-R1.json"]
+    assert not list(tmp_path.rglob("*.tmp"))  # atomic writes leave no temporaries
+    assert json.loads(run_files[0].read_text())["report"]["run_id"] == "R1"
+
+    # A new process on the same directory: same baseline, same runs, and the next run is
+    # measured incrementally against the resumed run 1.
+    r = make(tmp_path, baseline_frames=2, settle_frames=2)
+    assert r.phase == Phase.MONITORING
+    assert r.baseline is not None and len(r.baseline.poses) == len(truth0)
+    assert s.baseline is not None
+    a = np.array([p.position_mm for p in s.baseline.poses])
+    b = np.array([p.position_mm for p in r.baseline.poses])
+    assert np.array_equal(a, b)
+    assert [x.run_id for x in r.runs] == ["R1"]
+    truth2 = moved(truth1, [3], [0.0, 4.0, 0])
+    r.set_run_active(True, 3.0)
+    r.set_run_active(False, 4.0)
+    (done,) = of_type(feed(r, [frame(truth2, rng) for _ in range(2)], 4.5), RunCompleted)
+    assert done.run.sequence == 2
+    inc = disp_by_before(done.run.report["incremental"], truth1)
+    assert np.linalg.norm(inc[3] - [0, 4.0, 0]) < 0.5
+    cum = disp_by_before(done.run.report, truth0)
+    assert np.linalg.norm(cum[3] - [5.0, 4.0, 0]) < 0.5
+
+
+def test_corrupt_data_dir_is_a_clear_error(tmp_path: Path) -> None:
+    (tmp_path / "baseline.json").write_text("{not json")
+    with pytest.raises(SessionError, match=r"baseline\.json"):
+        make(tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        ({"baseline_frames": 0}, "baseline_frames"),
+        ({"settle_tolerance_mm": 0.0}, "settle_tolerance_mm"),
+        ({"settle_fraction": 1.5}, "settle_fraction"),
+        ({"settle_frames": 5, "settle_timeout_frames": 3}, "settle_timeout_frames"),
+    ],
+)
+def test_bad_config_is_rejected(kw: dict, match: str) -> None:
+    with pytest.raises(SessionError, match=match):
+        SessionConfig(**kw)
+
+
+def test_frames_agree(rng: np.random.Generator) -> None:
+    truth = scene()
+    a, b = frame(truth, rng), frame(truth, rng)
+    assert frames_agree(a, b, 0.5, 0.9)
+    assert not frames_agree(a, frame(truth + np.array([1.0, 0, 0]), rng), 0.5, 0.9)
+    # A few fiducials hidden in one frame (a passing glint) still agree ...
+    assert frames_agree(a, frame(truth, rng, drop=2), 0.5, 0.9)
+    # ... but half the scene hidden does not.
+    assert not frames_agree(a, frame(truth, rng, drop=20), 0.5, 0.9)
+    assert frames_agree([], [], 0.5, 0.9)
+    assert not frames_agree(a, [], 0.5, 0.9)
