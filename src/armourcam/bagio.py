@@ -1,8 +1,9 @@
 """The one module for bag I/O: reading ROS 1 / ROS 2 bags and writing ROS 2 MCAP bags.
 
-Built on rosbags (``AnyReader``, ``Writer``) with a recovery reader for truncated MCAP files; no
-rclpy. Messages come back as rosbags message objects, which :mod:`armourcam.image_codec` and
-:mod:`armourcam.records` read by duck typing like rclpy's.
+Built on rosbags (``AnyReader``, ``Writer``) with recovery scanners for truncated MCAP files and
+unindexed ROS 1 bags (a recorder killed mid-run); no rclpy. Messages come back as rosbags message
+objects, which :mod:`armourcam.image_codec` and :mod:`armourcam.records` read by duck typing like
+rclpy's.
 
 API summary
 -----------
@@ -10,8 +11,9 @@ Reading:
 
 - :func:`open_bag` ``(path) -> Bag``: a rosbag2 directory (MCAP or SQLite storage), a single
   ``.mcap`` file, or a ROS 1 ``.bag``. Use as a context manager.
-- :class:`Bag`: ``topics`` (``{topic: TopicInfo(topic, msgtype, count)}``), ``message_count``,
-  ``start_ns``/``end_ns``, ``kind``, ``truncation`` (a :class:`Truncation` or None);
+- :class:`Bag`: ``topics`` (``{topic: TopicInfo(topic, msgtype, count, latched)}``),
+  ``message_count``, ``start_ns``/``end_ns``, ``kind`` (``rosbag2``, ``rosbag1``,
+  ``mcap-recovered``, ``rosbag1-recovered``), ``truncation`` (a :class:`Truncation` or None);
   ``messages(topics=None, msgtypes=None, *, start_ns=None, stop_ns=None, deserialize=True)``
   -> iterator of :class:`BagMessage` (``topic, msgtype, timestamp_ns, index, rawdata,
   serialization, message``); ``topics_of_type(*msgtypes)``; ``image_topic(topic=None)`` and
@@ -29,8 +31,9 @@ Writing:
   (``armourcam_msgs/msg/...``). ``write(topic, msgtype, message, timestamp_ns)``,
   ``write_image``, ``write_compressed_image``, ``write_camera_info``, ``write_records`` (PointCloud2
   rows), ``write_record_array`` (e.g. ``FiducialPoseArray``), ``write_string``, ``write_bool``,
-  ``write_empty``; ``new(msgtype, **fields)``, ``header(stamp_ns, frame_id)``; ``latched=True``
-  records TRANSIENT_LOCAL QoS for a topic.
+  ``write_empty``, ``write_raw`` (CDR bytes as received); ``new(msgtype, **fields)``,
+  ``header(stamp_ns, frame_id)``; ``latched=True`` records TRANSIENT_LOCAL QoS for a topic
+  (read back as ``TopicInfo.latched``).
 - :func:`armourcam_typestore` ``()`` -> rosbags ``Typestore`` (Kilted + armourcam types).
 
 Conversions:
@@ -46,6 +49,7 @@ Errors: :class:`BagError` (a ``ValueError``) with the path and what is wrong.
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -118,11 +122,13 @@ class Truncation:
 
 @dataclass(frozen=True, slots=True)
 class TopicInfo:
-    """A topic of a bag: name, ROS 2 style type name (``pkg/msg/Name``) and message count."""
+    """A topic of a bag: name, ROS 2 style type name (``pkg/msg/Name``), message count, and
+    whether it was recorded latched (ROS 2 TRANSIENT_LOCAL offered QoS, ROS 1 ``latching``)."""
 
     topic: str
     msgtype: str
     count: int
+    latched: bool = False
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -252,9 +258,8 @@ def _message_fields(cls_or_msg: Any) -> list[str]:
     names = getattr(cls_or_msg, "get_fields_and_field_types", None)
     if names is not None:  # rclpy: slot names are the field names prefixed by "_"
         return list(names().keys())
-    dc = getattr(cls_or_msg, "__dataclass_fields__", None)
-    if dc is not None:  # rosbags
-        return [n for n in dc if not n.startswith("__")]
+    if dataclasses.is_dataclass(cls_or_msg):  # rosbags; constants are ClassVars, not fields
+        return [f.name for f in dataclasses.fields(cls_or_msg)]
     raise BagError(f"{cls_or_msg!r} is not a ROS message class")
 
 
@@ -274,9 +279,10 @@ def copy_message(src: Any, dst_class: Any) -> Any:
     classes need every field at construction).
     """
     dst = dst_class()
-    src_names = {n.lower(): n for n in _message_fields(src)}
+    exact = set(_message_fields(src))
+    folded = {n.lower(): n for n in exact}
     for name in _message_fields(dst):
-        sname = src_names.get(name.lower())
+        sname = name if name in exact else folded.get(name.lower())
         if sname is None:
             continue
         value = getattr(src, sname)
@@ -312,6 +318,8 @@ def _element_class(dst: Any, name: str) -> Any:
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 0x03, 0x04, 0x05, 0x06
 _OP_FOOTER, _OP_DATA_END = 0x02, 0x0F
+_OP_NAMES = {0x03: "schema", 0x04: "channel", 0x05: "message", 0x07: "message index"}
+_OP_NAMES.update({0x09: "attachment", 0x0C: "metadata", 0x0F: "data end", 0x02: "footer"})
 
 
 class _CutError(Exception):
@@ -360,7 +368,8 @@ class _McapScan:
             if op == _OP_CHUNK:
                 yield from self._chunk(body, length, pos)
             elif len(body) < length:
-                raise _CutError(pos, f"record of {length} bytes cut short at {len(body)}")
+                kind = _OP_NAMES.get(op, f"opcode 0x{op:02x}")
+                raise _CutError(pos, f"{kind} record of {length} bytes cut short at {len(body)}")
             elif op in (_OP_FOOTER, _OP_DATA_END):
                 return
             else:
@@ -431,6 +440,140 @@ def _mcap_str(buf: Any, pos: int) -> tuple[str, int]:
     return bytes(buf[pos + 4 : pos + 4 + n]).decode("utf-8"), pos + 4 + n
 
 
+_ROS1_MAGIC = b"#ROSBAG V2.0\n"
+_ROS1_MSG, _ROS1_CHUNK, _ROS1_CONN = 0x02, 0x05, 0x07
+
+
+def _ros1_header(buf: bytes) -> dict[str, bytes]:
+    fields: dict[str, bytes] = {}
+    pos = 0
+    while pos + 4 <= len(buf):
+        (n,) = struct.unpack_from("<I", buf, pos)
+        name, sep, value = buf[pos + 4 : pos + 4 + n].partition(b"=")
+        if not sep or pos + 4 + n > len(buf):
+            raise ValueError("malformed ROS 1 record header")
+        fields[name.decode("ascii")] = value
+        pos += 4 + n
+    return fields
+
+
+@dataclass(slots=True)
+class _Ros1Scan:
+    """Sequential scan of a ROS 1 bag (v2.0) that stops cleanly at the first incomplete record.
+
+    Needs no index (a recorder killed before closing leaves none). Uncompressed and bz2 chunks
+    cut short still yield their complete messages; lz4 chunks must be whole.
+    """
+
+    path: Path
+    schemas: dict[int, tuple[str, str, str]] = field(default_factory=dict)
+    channels: dict[int, tuple[str, int]] = field(default_factory=dict)
+    cut: _CutError | None = None
+    size: int = 0
+    index_pos: int = 0
+
+    def messages(self) -> Iterator[tuple[int, int, bytes]]:
+        """Yield ``(conn_id, time_ns, data)`` in file order; sets ``cut`` on a damaged end."""
+        self.size = self.path.stat().st_size
+        with self.path.open("rb") as fh:
+            if fh.read(len(_ROS1_MAGIC)) != _ROS1_MAGIC:
+                raise BagError(f"{self.path}: not a ROS 1 bag (v2.0)")
+            try:
+                yield from self._top(fh)
+            except _CutError as cut:
+                self.cut = cut
+
+    def _top(self, fh: Any) -> Iterator[tuple[int, int, bytes]]:
+        pos = len(_ROS1_MAGIC)
+        while True:
+            head = fh.read(4)
+            if not head:
+                if self.index_pos and pos <= self.index_pos:
+                    raise _CutError(pos, "file ends before the bag index (recording not closed)")
+                return
+            rec = head + fh.read(struct.unpack_from("<I", head)[0] + 4) if len(head) == 4 else head
+            try:
+                header, data_len, at = self._split(rec, 0)
+            except (struct.error, ValueError) as err:
+                raise _CutError(pos, "incomplete record header") from err
+            data = rec[at:] + fh.read(data_len)
+            op = header.get("op", b"\x00")[0]
+            if op == _ROS1_CHUNK:
+                yield from self._chunk(header, data, data_len, pos, pos + at)
+            elif len(data) < data_len:
+                raise _CutError(pos, f"record of {data_len} bytes cut short at {len(data)}")
+            else:
+                if op == 0x03 and "index_pos" in header:
+                    (self.index_pos,) = struct.unpack("<Q", header["index_pos"])
+                yield from self._record(op, header, data)
+            pos += at + data_len
+
+    @staticmethod
+    def _split(buf: bytes, pos: int = 0) -> tuple[dict[str, bytes], int, int]:
+        """Header fields, data length and data start of the record at ``pos`` of ``buf``."""
+        (hlen,) = struct.unpack_from("<I", buf, pos)
+        if pos + 4 + hlen + 4 > len(buf):
+            raise ValueError("short header")
+        header = _ros1_header(buf[pos + 4 : pos + 4 + hlen])
+        (data_len,) = struct.unpack_from("<I", buf, pos + 4 + hlen)
+        return header, data_len, pos + 8 + hlen
+
+    def _record(
+        self, op: int, header: dict[str, bytes], data: bytes
+    ) -> Iterator[tuple[int, int, bytes]]:
+        from rosbags.typesys.msg import normalize_msgtype
+
+        if op == _ROS1_CONN:
+            (conn,) = struct.unpack("<I", header["conn"])
+            info = _ros1_header(data)
+            msgtype = normalize_msgtype(info["type"].decode())
+            self.channels[conn] = (header["topic"].decode(), conn)
+            self.schemas[conn] = (msgtype, "ros1msg", info["message_definition"].decode())
+        elif op == _ROS1_MSG:
+            (conn,) = struct.unpack("<I", header["conn"])
+            secs, nsecs = struct.unpack("<II", header["time"])
+            yield conn, secs * 1_000_000_000 + nsecs, data
+
+    def _chunk(
+        self, header: dict[str, bytes], data: bytes, data_len: int, at: int, data_at: int
+    ) -> Iterator[tuple[int, int, bytes]]:
+        """Records of a chunk at file offset ``at`` whose data starts at ``data_at``."""
+        compression = header.get("compression", b"none").decode()
+        complete = len(data) == data_len
+        if compression == "none":
+            raw = data
+        elif compression == "bz2":
+            import bz2
+
+            try:  # a bz2 stream decompresses as far as it goes
+                raw = bz2.BZ2Decompressor().decompress(data)
+            except (OSError, ValueError) as err:
+                raise _CutError(at, f"damaged bz2 chunk: {err}") from err
+        elif compression == "lz4" and complete:
+            import lz4.frame
+
+            try:
+                raw = lz4.frame.decompress(data)
+            except RuntimeError as err:
+                raise _CutError(at, f"damaged lz4 chunk: {err}") from err
+        else:
+            raise _CutError(at, f"{compression} chunk cut short")
+        pos = 0
+        while pos < len(raw):
+            where = data_at + pos if compression == "none" else at
+            try:
+                inner, inner_len, start = self._split(raw, pos)
+            except (struct.error, ValueError) as err:
+                raise _CutError(where, "chunk cut short inside a record header") from err
+            if start + inner_len > len(raw):
+                raise _CutError(where, f"chunk cut short inside a record of {inner_len} bytes")
+            op = inner.get("op", b"\x00")[0]
+            yield from self._record(op, inner, raw[start : start + inner_len])
+            pos = start + inner_len
+        if not complete:
+            raise _CutError(at, "chunk cut short")
+
+
 # --------------------------------------------------------------------------------------------
 # Reading
 
@@ -449,6 +592,7 @@ class Bag:
         self.truncation: Truncation | None = None
         self._reader: Any = None
         self._recover: list[Path] = []
+        self._ros1 = False
         self._typestore: Any = None
         self._topics: dict[str, TopicInfo] = {}
         self.kind = ""
@@ -470,35 +614,40 @@ class Bag:
             reader.open()
         except (AnyReaderError, OSError, KeyError, ValueError, struct.error) as err:
             mcaps = _mcap_files(self.path)
-            if not mcaps:
-                hint = (
-                    " (an unindexed ROS 1 bag: it was not closed; run `rosbag reindex` on it)"
-                    if "index" in str(err).lower()
-                    else ""
-                )
-                raise BagError(f"{self.path}: cannot open bag: {err}{hint}") from err
-            self._open_recovery(mcaps, err)
-            return
+            if mcaps:
+                self._open_recovery(mcaps, err)
+                return
+            if self.path.is_file() and _is_ros1(self.path):
+                self._ros1 = True
+                self._open_recovery([self.path], err)
+                return
+            raise BagError(f"{self.path}: cannot open bag: {err}") from err
         self._reader = reader
         self._typestore = reader.typestore
         self.kind = "rosbag2" if reader.is2 else "rosbag1"
         counts: dict[tuple[str, str], int] = {}
+        latched: set[str] = set()
         for conn in reader.connections:
             key = (conn.topic, conn.msgtype)
             counts[key] = counts.get(key, 0) + conn.msgcount
-        self._topics = {t: TopicInfo(t, m, n) for (t, m), n in sorted(counts.items())}
+            if _is_latched(conn):
+                latched.add(conn.topic)
+        self._topics = {t: TopicInfo(t, m, n, t in latched) for (t, m), n in sorted(counts.items())}
         self.start_ns = reader.start_time if reader.message_count else 0
         self.end_ns = reader.end_time if reader.message_count else 0
 
+    def _scan(self, path: Path) -> _McapScan | _Ros1Scan:
+        return _Ros1Scan(path) if self._ros1 else _McapScan(path)
+
     def _open_recovery(self, mcaps: list[Path], err: Exception) -> None:
-        """Index a damaged MCAP by scanning it (no summary section to trust)."""
-        self.kind = "mcap-recovered"
+        """Index a damaged MCAP or ROS 1 bag by scanning it (no index/summary to trust)."""
+        self.kind = "rosbag1-recovered" if self._ros1 else "mcap-recovered"
         self._recover = mcaps
         counts: dict[str, int] = {}
         types: dict[str, str] = {}
         times: list[int] = []
         for path in mcaps:
-            scan = _McapScan(path)
+            scan = self._scan(path)
             for cid, log_time, _ in scan.messages():
                 topic, sid = scan.channels[cid]
                 counts[topic] = counts.get(topic, 0) + 1
@@ -679,6 +828,8 @@ class Bag:
         try:
             if self._reader is not None:
                 return self._reader.deserialize(raw, msgtype)
+            if self._ros1:
+                return self._typestore.deserialize_ros1(raw, msgtype)
             return self._typestore.deserialize_cdr(raw, msgtype)
         except Exception as err:
             raise BagError(
@@ -688,11 +839,12 @@ class Bag:
     def _recovered(
         self, keep: Any, start_ns: int | None, stop_ns: int | None, deserialize: bool
     ) -> Iterator[BagMessage]:
-        from rosbags.typesys import Stores, get_types_from_idl, get_typestore
+        from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
         index = 0
+        serialization = "ros1" if self._ros1 else "cdr"
         for path in self._recover:
-            scan = _McapScan(path)
+            scan = self._scan(path)
             registered: set[int] = set()
             for cid, t, raw in scan.messages():
                 topic, sid = scan.channels[cid]
@@ -708,6 +860,8 @@ class Bag:
                         try:
                             if encoding == "ros2idl":
                                 store.register(get_types_from_idl(text))
+                            elif encoding == "ros1msg":
+                                store.register(get_types_from_msg(text, name))
                             else:
                                 store.register(_types_from_msg_bundle(text, name))
                         except Exception as err:
@@ -715,7 +869,7 @@ class Bag:
                         self._typestore = store
                         registered.add(sid)
                     msg = self._deserialize(raw, name, index, topic)
-                yield BagMessage(topic, name, t, index, raw, "cdr", msg)
+                yield BagMessage(topic, name, t, index, raw, serialization, msg)
                 index += 1
 
     def frames(
@@ -761,6 +915,21 @@ class Bag:
         raise BagError(f"{self.path}: {name} has no readable message")
 
 
+def _is_ros1(path: Path) -> bool:
+    with path.open("rb") as fh:
+        return fh.read(len(_ROS1_MAGIC)) == _ROS1_MAGIC
+
+
+def _is_latched(conn: Any) -> bool:
+    ext = conn.ext
+    if hasattr(ext, "latching"):
+        return bool(ext.latching)
+    return any(
+        getattr(getattr(q, "durability", None), "name", "") == "TRANSIENT_LOCAL"
+        for q in getattr(ext, "offered_qos_profiles", ()) or ()
+    )
+
+
 def _types_from_msg_bundle(text: str, name: str) -> dict[str, Any]:
     """Types of a ``ros2msg`` schema: the main definition and its ``MSG: pkg/Name`` dependencies."""
     from rosbags.typesys import get_types_from_msg
@@ -786,7 +955,8 @@ def _normal_type(msgtype: str) -> str:
 def open_bag(path: str | Path) -> Bag:
     """Open a bag for reading: rosbag2 directory (MCAP/SQLite), single ``.mcap`` or ROS 1 ``.bag``.
 
-    A truncated MCAP (no footer/summary, e.g. a recorder killed mid-run) opens in recovery mode:
+    A truncated MCAP (no footer/summary, e.g. a recorder killed mid-run) or a truncated, unindexed
+    ROS 1 bag opens in recovery mode (``bag.kind`` is ``mcap-recovered`` / ``rosbag1-recovered``):
     its readable prefix is indexed by scanning and ``bag.truncation`` says where it stops.
 
     Raises
@@ -909,6 +1079,15 @@ class BagWriter:
         except Exception as err:
             raise BagError(f"cannot serialise a {conn.msgtype} for {topic}: {err}") from err
         self._writer.write(conn, int(timestamp_ns), raw)
+        self.counts[topic] += 1
+
+    def write_raw(self, topic: str, msgtype: str, rawdata: bytes, timestamp_ns: int) -> None:
+        """Write an already CDR-serialised message (e.g. as received by a generic subscription),
+        without deserialising it. The type must be known to :attr:`typestore`."""
+        conn = self.add_topic(topic, msgtype)
+        if self._writer is None:
+            raise BagError(f"bag {self.path} is closed")
+        self._writer.write(conn, int(timestamp_ns), rawdata)
         self.counts[topic] += 1
 
     # -- typed writers

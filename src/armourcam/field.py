@@ -57,7 +57,9 @@ class UnitGeometry:
     dn_mm: float
 
 
-def dolos_geometry(height_mm: float = 38.0, codes: tuple[int, ...] = (3, 17, 29, 41)) -> UnitGeometry:
+def dolos_geometry(
+    height_mm: float = 38.0, codes: tuple[int, ...] = (3, 17, 29, 41)
+) -> UnitGeometry:
     """A dolos of overall height ``height_mm`` with a fiducial on each of its four fluke ends.
 
     The shank runs along local x; the flukes at +x point along +-y, those at -x along +-z. The
@@ -326,10 +328,14 @@ def make_field(
             tilt = _rot(rng.normal(size=3), np.radians(rng.uniform(0, 20)))
             R = tilt @ spin @ base
             fid = centre + geo.positions_mm @ R.T
-            if not placed or min(
-                float(np.min(np.linalg.norm(q[:, None] - fid[None], axis=2)))
-                for q in placed[-3 * ncol :]
-            ) >= min_gap_mm:
+            if (
+                not placed
+                or min(
+                    float(np.min(np.linalg.norm(q[:, None] - fid[None], axis=2)))
+                    for q in placed[-3 * ncol :]
+                )
+                >= min_gap_mm
+            ):
                 break
         rots[u], cents[u] = R, centre
         placed.append(fid)

@@ -453,6 +453,7 @@ def replay_bag(
     confirm_topic: str = "/armourcam/detections",
     restamp: bool = True,
     wait_subscribers: float = 10.0,
+    match_grace_s: float = 1.0,
     settle_s: float = 0.0,
     progress: Callable[[int, int], None] | None = None,
     ros_args: Sequence[str] = (),
@@ -504,6 +505,9 @@ def replay_bag(
         missing = replayer.wait_for_subscribers(sorted(set(waited)), wait_subscribers)
         if missing:
             node.get_logger().warning(f"no subscriber yet on {missing}; publishing anyway")
+        # A publisher sees the match before the subscriber has matched it back; samples sent in
+        # between are not delivered to a volatile reader. Give discovery a moment to finish.
+        time.sleep(match_grace_s)
         last_ns = [0]
         t0_bag: int | None = None
         t0_wall = time.monotonic()

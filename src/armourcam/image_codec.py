@@ -195,7 +195,9 @@ def image_from_fields(
     Returns
     -------
     ndarray
-        uint8 for 8-bit encodings, uint16 for 16-bit ones (two-channel YUV gives uint8).
+        uint8 for 8-bit encodings, uint16 for 16-bit ones (two-channel YUV gives uint8). For an
+        unpadded little-endian image already in the asked layout (e.g. mono8 read as grey) this is
+        a zero-copy view of ``data``, read-only when ``data`` is ``bytes``: copy before writing.
 
     Raises
     ------
@@ -291,16 +293,14 @@ def compressed_from_fields(fmt: str, data: Any, *, colour: bool = False) -> NDAr
             raise ImageCodecError(
                 f"corrupt JPEG ({buf.size} bytes): no end-of-image marker, data is truncated"
             )
-    image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    # Grey straight from the decoder (a JPEG's luma plane, no colour round trip); ANYDEPTH keeps
+    # 16-bit PNGs; camera frames are raw pixels, so EXIF orientation is ignored.
+    flags = cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION
+    flags |= cv2.IMREAD_COLOR if colour else cv2.IMREAD_GRAYSCALE
+    image = cv2.imdecode(buf, flags)
     if image is None or image.size == 0:
         raise ImageCodecError(f"corrupt {codec.upper()} ({buf.size} bytes): cannot be decoded")
-    if image.ndim == 2:
-        code = cv2.COLOR_GRAY2BGR if colour else None
-    elif image.shape[2] == 4:
-        code = cv2.COLOR_BGRA2BGR if colour else cv2.COLOR_BGRA2GRAY
-    else:
-        code = None if colour else cv2.COLOR_BGR2GRAY
-    return image if code is None else np.asarray(cv2.cvtColor(image, code))
+    return np.asarray(image)
 
 
 def decode_compressed(msg: Any, *, colour: bool = False) -> NDArray[Any]:

@@ -29,6 +29,8 @@ from numpy.typing import NDArray
 from fiducial_detector.codebook import BITS, code_bits, code_count
 from fiducial_detector.design import FiducialDesign, get_design, reflectance
 
+from .render import supersample_offsets
+
 MM_PER_INCH = 25.4
 PT_PER_MM = 72.0 / MM_PER_INCH
 A4_MM = (210.0, 297.0)
@@ -220,13 +222,12 @@ def target_image(
     mixed = blocks.min(axis=(2, 3)) != blocks.max(axis=(2, 3))
     out = val[1::2, 1::2].copy()
     rows, cols = np.nonzero(mixed)
-    offs = (np.arange(supersample) + 0.5) / supersample - 0.5
-    ou, ov = np.meshgrid(offs, offs)
+    ou, ov = supersample_offsets(supersample)
     chunk = max(1, 2_000_000 // (supersample * supersample))
     for i in range(0, rows.size, chunk):
         r, k = rows[i : i + chunk], cols[i : i + chunk]
-        su = k[:, None] + ou.ravel()[None, :]
-        sv = r[:, None] + ov.ravel()[None, :]
+        su = k[:, None] + ou[None, :]
+        sv = r[:, None] + ov[None, :]
         out[r, k] = refl(su.astype(np.float64), sv.astype(np.float64)).mean(axis=1)
     return np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
 

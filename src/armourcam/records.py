@@ -316,6 +316,11 @@ def layout(name: str) -> RecordLayout:
 
 def record_names() -> list[str]:
     """Names of the per-row record definitions (those :func:`layout` accepts), sorted."""
+    return list(_record_names())
+
+
+@functools.cache
+def _record_names() -> tuple[str, ...]:
     out = []
     for name in definition_names():
         try:
@@ -323,7 +328,7 @@ def record_names() -> list[str]:
         except RecordError:
             continue
         out.append(name)
-    return out
+    return tuple(out)
 
 
 def _field_specs(fields: Iterable[Any]) -> list[PointFieldSpec]:
@@ -557,7 +562,7 @@ def decode(
             "itemsize": point_step,
         }
     )
-    out = np.empty(width * height, dtype=lay.dtype)
+    out = np.zeros(width * height, dtype=lay.dtype)  # zeros: padding bytes are deterministic
     if width * height == 0:
         return out
     rows = buf.reshape(height, row_step)[:, : width * point_step]
@@ -695,11 +700,20 @@ def design_ids() -> dict[str, int]:
     }
 
 
+def _int_column(name: str, field: str, values: list[int], lo: int, hi: int) -> NDArray[np.int64]:
+    arr = np.asarray(values, dtype=np.int64).reshape(-1)
+    bad = np.flatnonzero((arr < lo) | (arr > hi))
+    if bad.size:
+        raise RecordError(f"{name} {bad[0]}: {field} {arr[bad[0]]} outside {lo}..{hi}")
+    return arr
+
+
 def detections_to_records(detections: Sequence[FiducialDetection]) -> NDArray[Any]:
     """``FiducialDetection`` list -> ``FiducialDetectionRecord`` structured array.
 
     Stored: code, hamming, design, centre, contrast, rotation and every ellipse (centre, axes,
     angle, nominal radius, RMS residual, covariance upper triangle). Not stored: ``extra``.
+    Column-wise (no per-record numpy access): about 2 ms for 400 ring detections.
 
     Raises
     ------
@@ -709,33 +723,47 @@ def detections_to_records(detections: Sequence[FiducialDetection]) -> NDArray[An
     lay = layout(DETECTION)
     slots = int(lay.constants["MAX_ELLIPSES"])
     ids = design_ids()
-    out = lay.empty(len(detections))
+    n = len(detections)
+    out = lay.empty(n)
+    if n == 0:
+        return out
+    # Per-ellipse values gathered into (n, slots) tables, NaN where a slot is unused.
+    table = np.full((7, n, slots), np.nan)
+    covs = np.full((n, slots, 5, 5), np.nan)
+    n_ell: list[int] = []
+    designs: list[int] = []
     for i, det in enumerate(detections):
         if det.design not in ids:
             raise RecordError(f"detection {i}: unknown design {det.design!r}; known {sorted(ids)}")
-        n = len(det.ellipses)
-        if not 1 <= n <= slots:
-            raise RecordError(f"detection {i}: {n} ellipses, the record holds 1..{slots}")
-        if not (0 <= det.code <= 0xFFFFFFFF and 0 <= det.hamming <= 0xFF):
-            raise RecordError(
-                f"detection {i}: code {det.code} / hamming {det.hamming} out of range"
-            )
-        rec = out[i]
-        rec["code"], rec["hamming"], rec["design"], rec["n_ellipses"] = (
-            det.code,
-            det.hamming,
-            ids[det.design],
-            n,
-        )
-        rec["u"], rec["v"] = det.center_px
-        rec["contrast"], rec["rotation"] = det.contrast, det.rotation
-        cov = rec["ellipse_covariance"]
-        for k, e in enumerate(det.ellipses):
-            rec["ellipse_u"][k], rec["ellipse_v"][k] = e.center_px
-            rec["semi_major"][k], rec["semi_minor"][k] = e.semi_major, e.semi_minor
-            rec["angle"][k], rec["radius"][k] = e.angle, e.radius
-            rec["rms_residual"][k] = e.rms_residual
-            cov[15 * k : 15 * (k + 1)] = covariance_to_upper(np.reshape(e.covariance, (5, 5)))
+        k = len(det.ellipses)
+        if not 1 <= k <= slots:
+            raise RecordError(f"detection {i}: {k} ellipses, the record holds 1..{slots}")
+        designs.append(ids[det.design])
+        n_ell.append(k)
+        table[:, i, :k] = [
+            [e.center_px[0] for e in det.ellipses],
+            [e.center_px[1] for e in det.ellipses],
+            [e.semi_major for e in det.ellipses],
+            [e.semi_minor for e in det.ellipses],
+            [e.angle for e in det.ellipses],
+            [e.radius for e in det.ellipses],
+            [e.rms_residual for e in det.ellipses],
+        ]
+        for j, e in enumerate(det.ellipses):
+            covs[i, j] = e.covariance
+    out["code"] = _int_column("detection", "code", [d.code for d in detections], 0, 2**32 - 1)
+    out["hamming"] = _int_column("detection", "hamming", [d.hamming for d in detections], 0, 255)
+    out["design"] = designs
+    out["n_ellipses"] = n_ell
+    out["u"] = [d.center_px[0] for d in detections]
+    out["v"] = [d.center_px[1] for d in detections]
+    out["contrast"] = [d.contrast for d in detections]
+    out["rotation"] = [d.rotation for d in detections]
+    for row, name in enumerate(
+        ("ellipse_u", "ellipse_v", "semi_major", "semi_minor", "angle", "radius", "rms_residual")
+    ):
+        out[name] = table[row]
+    out["ellipse_covariance"] = covariance_to_upper(covs).reshape(n, slots * 15)
     return out
 
 
@@ -750,36 +778,42 @@ def records_to_detections(records: NDArray[Any]) -> list[FiducialDetection]:
     recs = _as_records(DETECTION, records)
     slots = int(layout(DETECTION).constants["MAX_ELLIPSES"])
     names = {v: k for k, v in design_ids().items()}
-    out: list[FiducialDetection] = []
-    for i, rec in enumerate(recs):
-        n, design = int(rec["n_ellipses"]), int(rec["design"])
-        if not 1 <= n <= slots:
-            raise RecordError(f"{DETECTION} row {i}: n_ellipses {n} outside 1..{slots}")
-        if design not in names:
-            raise RecordError(f"{DETECTION} row {i}: unknown design id {design}")
-        covs = upper_to_covariance(rec["ellipse_covariance"].reshape(slots, 15), 5)
-        ellipses = tuple(
-            Ellipse(
-                center_px=(float(rec["ellipse_u"][k]), float(rec["ellipse_v"][k])),
-                semi_major=float(rec["semi_major"][k]),
-                semi_minor=float(rec["semi_minor"][k]),
-                angle=float(rec["angle"][k]),
-                covariance=covs[k],
-                radius=float(rec["radius"][k]),
-                rms_residual=float(rec["rms_residual"][k]),
+    n_ell = recs["n_ellipses"].astype(int)
+    bad = np.flatnonzero((n_ell < 1) | (n_ell > slots))
+    if bad.size:
+        raise RecordError(
+            f"{DETECTION} row {bad[0]}: n_ellipses {n_ell[bad[0]]} outside 1..{slots}"
+        )
+    design = recs["design"].astype(int).tolist()
+    unknown = [i for i, d in enumerate(design) if d not in names]
+    if unknown:
+        raise RecordError(f"{DETECTION} row {unknown[0]}: unknown design id {design[unknown[0]]}")
+    covs = upper_to_covariance(recs["ellipse_covariance"].reshape(len(recs), slots, 15), 5)
+    per_slot = zip(
+        *(
+            recs[name].tolist()
+            for name in (
+                "ellipse_u", "ellipse_v", "semi_major", "semi_minor", "angle", "radius",
+                "rms_residual",
             )
-            for k in range(n)
+        ),
+        strict=True,
+    )  # fmt: skip
+    head = zip(
+        *(recs[name].tolist() for name in ("code", "hamming", "u", "v", "contrast", "rotation")),
+        strict=True,
+    )
+    out: list[FiducialDetection] = []
+    for i, (k, slot, (code, hamming, u, v, contrast, rotation)) in enumerate(
+        zip(n_ell.tolist(), per_slot, head, strict=True)
+    ):
+        eu, ev, a, b, ang, rad, rms = slot
+        ellipses = tuple(
+            Ellipse((eu[j], ev[j]), a[j], b[j], ang[j], covs[i, j], rad[j], rms[j])
+            for j in range(k)
         )
         out.append(
-            FiducialDetection(
-                code=int(rec["code"]),
-                hamming=int(rec["hamming"]),
-                center_px=(float(rec["u"]), float(rec["v"])),
-                ellipses=ellipses,
-                contrast=float(rec["contrast"]),
-                design=names[design],
-                rotation=float(rec["rotation"]),
-            )
+            FiducialDetection(code, hamming, (u, v), ellipses, contrast, names[design[i]], rotation)
         )
     return out
 
@@ -801,22 +835,28 @@ def poses_to_records(
     ``(u, v)`` (NaN without a detection) and ``detection_index``.
     """
     lay = layout(POSE)
-    out = lay.empty(len(poses))
+    n = len(poses)
+    out = lay.empty(n)
+    if n == 0:
+        return out
+    try:
+        pos = np.array([np.reshape(p.position_mm, 3) for p in poses], dtype=np.float64)
+        nrm = np.array([np.reshape(p.normal, 3) for p in poses], dtype=np.float64)
+        cov = np.array([np.reshape(p.covariance_mm2, (3, 3)) for p in poses], dtype=np.float64)
+    except ValueError as err:
+        raise RecordError(f"poses with malformed position/normal/covariance: {err}") from err
+    out["x"], out["y"], out["z"] = pos.T
+    out["nx"], out["ny"], out["nz"] = nrm.T
+    out["covariance"] = covariance_to_upper(cov)
+    out["code"] = _int_column("pose", "code", [p.code for p in poses], 0, 2**32 - 1)
+    out["n_frames"] = _int_column("pose", "n_frames", [p.n_frames for p in poses], 1, 2**32 - 1)
     index_of = {id(d): k for k, d in enumerate(detections or ())}
-    for i, pose in enumerate(poses):
-        if not (0 <= pose.code <= 0xFFFFFFFF and 1 <= pose.n_frames <= 0xFFFFFFFF):
-            raise RecordError(f"pose {i}: code {pose.code} / n_frames {pose.n_frames} out of range")
-        rec = out[i]
-        p = np.asarray(pose.position_mm, dtype=np.float64).reshape(3)
-        nrm = np.asarray(pose.normal, dtype=np.float64).reshape(3)
-        rec["x"], rec["y"], rec["z"] = p
-        rec["nx"], rec["ny"], rec["nz"] = nrm
-        rec["covariance"] = covariance_to_upper(np.reshape(pose.covariance_mm2, (3, 3)))
-        rec["code"], rec["n_frames"] = pose.code, pose.n_frames
-        det = pose.detection
-        rec["detection_index"] = index_of.get(id(det), -1) if det is not None else -1
-        if det is not None:
-            rec["u"], rec["v"] = det.center_px
+    out["detection_index"] = [
+        index_of.get(id(p.detection), -1) if p.detection is not None else -1 for p in poses
+    ]
+    nan = (np.nan, np.nan)
+    uv = np.array([p.detection.center_px if p.detection is not None else nan for p in poses])
+    out["u"], out["v"] = uv.T
     return out
 
 
@@ -835,24 +875,25 @@ def records_to_poses(
     """
     recs = _as_records(POSE, records)
     covs = upper_to_covariance(recs["covariance"], 3)
-    out: list[FiducialPose] = []
-    for i, rec in enumerate(recs):
-        idx = int(rec["detection_index"])
-        det = None
-        if detections is not None and idx >= 0:
-            if idx >= len(detections):
-                raise RecordError(
-                    f"{POSE} row {i}: detection_index {idx} but only {len(detections)} detections"
-                )
-            det = detections[idx]
-        out.append(
-            FiducialPose(
-                code=int(rec["code"]),
-                position_mm=np.array([rec["x"], rec["y"], rec["z"]], dtype=np.float64),
-                normal=np.array([rec["nx"], rec["ny"], rec["nz"]], dtype=np.float64),
-                covariance_mm2=covs[i],
-                detection=det,
-                n_frames=int(rec["n_frames"]),
+    pos = np.column_stack([recs["x"], recs["y"], recs["z"]]).astype(np.float64)
+    nrm = np.column_stack([recs["nx"], recs["ny"], recs["nz"]]).astype(np.float64)
+    idx = recs["detection_index"].tolist()
+    if detections is not None:
+        bad = [i for i, k in enumerate(idx) if k >= len(detections)]
+        if bad:
+            raise RecordError(
+                f"{POSE} row {bad[0]}: detection_index {idx[bad[0]]} but only "
+                f"{len(detections)} detections"
             )
+    codes, frames = recs["code"].tolist(), recs["n_frames"].tolist()
+    return [
+        FiducialPose(
+            code=codes[i],
+            position_mm=pos[i].copy(),
+            normal=nrm[i].copy(),
+            covariance_mm2=covs[i].copy(),
+            detection=detections[idx[i]] if detections is not None and idx[i] >= 0 else None,
+            n_frames=frames[i],
         )
-    return out
+        for i in range(len(recs))
+    ]

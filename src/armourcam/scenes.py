@@ -186,6 +186,18 @@ class _Placer:
         d = np.hypot(self.circles[:, 0] - u, self.circles[:, 1] - v)
         return bool(np.all(d >= self.circles[:, 2] + r + self.gap))
 
+    def blocked(self, u: float, v: float, r_min: float) -> bool:
+        """Cheap early rejection: True if a circle of at least ``r_min`` at (u, v) cannot fit."""
+        b = self.border + r_min
+        if not (b - 0.5 <= u <= self.camera.width - 0.5 - b):
+            return True
+        if not (b - 0.5 <= v <= self.camera.height - 0.5 - b):
+            return True
+        if len(self.circles) == 0:
+            return False
+        d = np.hypot(self.circles[:, 0] - u, self.circles[:, 1] - v)
+        return bool(np.any(d < self.circles[:, 2] + r_min + self.gap))
+
     def add(self, fp: tuple[float, float, float]) -> None:
         self.circles = np.vstack([self.circles, np.array(fp)])
 
@@ -412,6 +424,9 @@ def _place_clutter(
         radius_mm = rng.uniform(0.3, 0.9) * size_px * mm_per_px
         uv = (rng.uniform(0, camera.width - 1), rng.uniform(0, camera.height - 1))
         slant = rng.uniform(0.0, slant_max)
+        # A slanted disc's image is never much narrower than its fronto-parallel width.
+        if placer.blocked(uv[0], uv[1], 0.9 * radius_mm / mm_per_px):
+            continue
         rot, pos = pose_at_pixel(
             camera, uv, depth_mm, slant, rng.uniform(0, 2 * np.pi), rng.uniform(0, 2 * np.pi)
         )
@@ -500,6 +515,8 @@ def random_layout(
             )
         uv = (rng.uniform(0, camera.width - 1), rng.uniform(0, camera.height - 1))
         slant, tilt, spin = rng.uniform(0.0, slant_max), *rng.uniform(0.0, 2 * np.pi, 2)
+        if placer.blocked(uv[0], uv[1], 0.9 * MARGIN * size_px / 2.0):
+            continue
         rot, pos = pose_at_pixel(camera, uv, depth, slant, tilt, spin)
         fp = _footprint(camera, rot, pos, MARGIN * diameter_mm / 2.0)
         if not placer.fits(fp):

@@ -3,7 +3,7 @@
 A unit is *displaced* when its reference point moved at least the displacement threshold
 (default one nominal unit size Dn, the usual criterion for armour-unit damage counts), *moved* when
 it moved at least the movement threshold but less than that; overturned units and, by default,
-units seen before but not found after count as displaced. ``N_od`` is the number of displaced
+units seen before but not found after are counted apart as lost (optionally as displaced). ``N_od`` is the number of displaced
 units per strip of width Dn across the section (``displaced * Dn / section width``). Every summary
 carries its thresholds in millimetres so the numbers are never printed without them.
 """
@@ -28,7 +28,7 @@ def thresholds(
     moved_mm: float = DEFAULT_MOVED_MM,
     overturn_deg: float = 90.0,
     overturned_displaced: bool = True,
-    lost_displaced: bool = True,
+    lost_displaced: bool = False,
 ) -> DamageThresholds:
     """Damage thresholds; the displacement threshold in mm or in Dn (default 1 Dn).
 

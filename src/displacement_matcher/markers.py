@@ -15,15 +15,21 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from pose_estimator.types import FiducialPose
 
-from .match import match
+from .compare import compare_poses
+from .damage import thresholds
+from .report import report_dict
 from .session import Comparison, MarkerSpec
-from .types import Displacement, MatchResult
+from .types import Displacement, MatchResult, UnitMotion
+from .units import UnitMap
+
+DEFAULT_DN_MM = 20.5  # a 38 mm model dolos (Dn ~ 0.54 H)
 
 _LABEL_CODE = {"same_code": 0, "cross_code": 1, "vanished": 2, "appeared": 3}
 
@@ -83,35 +89,62 @@ def arrow_specs(displacements: Sequence[Displacement]) -> list[MarkerSpec]:
     return out
 
 
-def fiducial_entries(result: MatchResult) -> list[dict[str, Any]]:
-    """The ``fiducials`` list of the report (compare --json keys)."""
-    out = []
-    for d in result.displacements:
-        out.append(
-            {
-                "label": d.label,
-                "code_before": d.code_before,
-                "code_after": d.code_after,
-                "before_mm": None if d.before_mm is None else _vec(d.before_mm),
-                "after_mm": None if d.after_mm is None else _vec(d.after_mm),
-                "displacement_mm": None if d.displacement_mm is None else _vec(d.displacement_mm),
-            }
+@dataclass(frozen=True, slots=True)
+class Comparer:
+    """Compare two pose sets the way ``armourcam compare`` does (units, damage, report).
+
+    Attributes
+    ----------
+    dn_mm : float
+        Nominal unit size Dn, mm.
+    displaced_dn : float
+        A unit displaced this many Dn or more counts as displaced.
+    section_width_mm : float or None
+        Width of the section (for N_od).
+    unit_map : UnitMap or None
+        Unit id -> codes (and positions); None groups fiducials automatically.
+    """
+
+    dn_mm: float = DEFAULT_DN_MM
+    displaced_dn: float = 1.0
+    section_width_mm: float | None = None
+    unit_map: UnitMap | None = None
+
+    def __call__(self, before: Sequence[FiducialPose], after: Sequence[FiducialPose]) -> Comparison:
+        """Match ``after`` against ``before``; report, markers and displacement rows."""
+        limits = thresholds(self.dn_mm, displaced_dn=self.displaced_dn)
+        a = compare_poses(
+            list(before),
+            list(after),
+            limits,
+            unit_map=self.unit_map,
+            section_width_mm=self.section_width_mm,
         )
+        report = report_dict(a.result, a.units, a.summary, unassigned=a.unassigned)
+        unit_of: dict[tuple[str, int], int] = {}
+        for k, u in enumerate(a.units):
+            for i in u.baseline_indices:
+                unit_of[("b", int(i))] = k
+        markers = arrow_specs(a.result.displacements) + unit_labels(a.units)
+        return Comparison(report, tuple(markers), tuple(displacement_rows(a.result, unit_of)))
+
+
+def unit_labels(units: Sequence[UnitMotion]) -> list[MarkerSpec]:
+    """A text label per unit that moved: id, status and displacement (mm)."""
+    out = []
+    for u in units:
+        if u.status == "still" or not np.all(np.isfinite(u.reference_before_mm)):
+            continue
+        p = _vec(u.reference_before_mm)
+        dist = u.distance_mm
+        text = f"{u.unit} {u.status}" + (f" {dist:.1f} mm" if math.isfinite(dist) else "")
+        # Labels sit 8 mm towards the camera of the unit's reference point, so they are not
+        # hidden inside it.
+        q = (p[0], p[1], p[2] - 8.0)
+        out.append(MarkerSpec("label", q, q, True, text))
     return out
 
 
 def compare(before: Sequence[FiducialPose], after: Sequence[FiducialPose]) -> Comparison:
-    """Match ``after`` against ``before``; report, markers and displacement rows."""
-    result = match(list(before), list(after))
-    counts = result.counts()
-    report: dict[str, Any] = {
-        "fiducials": fiducial_entries(result),
-        "units": [],
-        "summary": {
-            "n_before": len(before),
-            "n_after": len(after),
-            **{f"n_{k}": v for k, v in counts.items()},
-        },
-    }
-    markers = arrow_specs(result.displacements)
-    return Comparison(report, tuple(markers), tuple(displacement_rows(result)))
+    """:class:`Comparer` with the default thresholds."""
+    return Comparer()(before, after)

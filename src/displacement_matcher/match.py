@@ -5,13 +5,15 @@ method: the best partial permutation between the two sets. With a cost that is l
 permutation matrix this is exactly a minimum-cost bipartite matching in which every fiducial may
 also stay unmatched, which we solve exactly:
 
-* Cost of a pair ``(a, b)``: the weighted squared distance ``s^2 d^T (s^2 I + C_a + C_b)^-1 d``
+* Cost of a pair ``(a, b)``: the weighted distance ``sqrt(s^2 d^T (s^2 I + C_a + C_b)^-1 d)``
   (``d = p_b - p_a``, ``C`` the pose covariances, ``s`` the motion scale), so depth, which a single
   camera measures several times worse than x and y, counts less where it is uncertain (the paper's
-  section 4.1 advice); plus ``code_penalty_mm**2`` when the codes differ (the paper's red vectors),
-  plus an optional normal-disagreement term. Leaving a fiducial unmatched costs ``gate_mm**2 / 2``,
-  so a pair is only ever matched when its cost is below ``gate_mm**2``: that is the gate, and the
-  only pairs the solver sees.
+  section 4.1 advice); plus ``code_penalty_mm`` when the codes differ (the paper's red vectors),
+  plus an optional normal-disagreement term. The cost is a distance, not a squared distance: a
+  squared cost would rather split one large move into two medium ones (40^2 > 2 * 20^2) and hand
+  a still fiducial's partner to a moved neighbour. Leaving a fiducial unmatched costs
+  ``gate_mm / 2``, so a pair is only ever matched when its cost is below ``gate_mm``: that is the
+  gate, and the only pairs the solver sees; a k-d tree finds them.
 * The gated pairs form a sparse bipartite graph; every connected component is an independent
   problem. One-to-one components are matched directly; the others are solved exactly as a
   rectangular assignment with a dummy "no match" row and column per fiducial
@@ -175,18 +177,18 @@ def _candidates(a: _PoseSet, b: _PoseSet, params: MatchParams) -> tuple[NDArray,
 def _pair_costs(
     a: _PoseSet, b: _PoseSet, i: NDArray, j: NDArray, params: MatchParams
 ) -> NDArray[np.float64]:
-    """Cost (mm^2) of matching usable baseline ``i`` with usable current ``j``, elementwise."""
+    """Cost (mm) of matching usable baseline ``i`` with usable current ``j``, elementwise."""
     if len(i) == 0:
         return np.zeros(0)
     s2 = params.motion_scale_mm**2
     d = b.pos[j] - a.pos[i]
     S = a.cov[i] + b.cov[j] + s2 * np.eye(3)
     w = np.linalg.solve(S, d[..., None])[..., 0]
-    cost = s2 * np.einsum("ki,ki->k", d, w)
-    cost += np.where(a.code[i] != b.code[j], params.code_penalty_mm**2, 0.0)
+    cost = np.sqrt(np.clip(s2 * np.einsum("ki,ki->k", d, w), 0.0, None))
+    cost += np.where(a.code[i] != b.code[j], params.code_penalty_mm, 0.0)
     if params.normal_weight_mm > 0:
         dot = np.einsum("ki,ki->k", a.normal[i], b.normal[j])
-        cost += params.normal_weight_mm**2 * (1.0 - dot)
+        cost += params.normal_weight_mm * (1.0 - dot)
     return np.asarray(cost, dtype=np.float64)
 
 
@@ -235,6 +237,7 @@ def match(
     normal_weight_mm: float = DEFAULT_NORMAL_WEIGHT_MM,
     prediction_mm: NDArray[np.float64] | None = None,
     row_gate_mm: NDArray[np.float64] | None = None,
+    exclude_pairs: Sequence[tuple[int, int]] = (),
 ) -> MatchResult:
     """Globally optimal partial matching of baseline and current fiducials.
 
@@ -243,15 +246,14 @@ def match(
     baseline, current : sequence of FiducialPose
         Fiducial poses before and after (camera frame, mm). Either may be empty.
     gate_mm : float
-        Largest weighted distance (mm) at which a pair may be matched; leaving a fiducial
-        unmatched costs ``gate_mm**2 / 2``.
+        Largest cost (mm) at which a pair may be matched; leaving a fiducial unmatched costs
+        ``gate_mm / 2``.
     code_penalty_mm : float
-        Penalty for a cross-code pair, added in quadrature to the weighted distance; ``inf``
-        forbids cross-code pairs.
+        Penalty (mm) added to the weighted distance of a cross-code pair; ``inf`` forbids them.
     motion_scale_mm : float
         Scale ``s`` of the covariance weighting ``s^2 (s^2 I + C_a + C_b)^-1``.
     normal_weight_mm : float
-        Weight of ``(1 - n_a . n_b)`` in quadrature (0: normals are not used).
+        Weight (mm) of ``(1 - n_a . n_b)`` (0: normals are not used).
     prediction_mm : (n, 3) array_like, optional
         Where each baseline fiducial is expected now (for example moved with its unit, see
         :func:`displacement_matcher.units.match_units`); costs are measured from there, while
@@ -259,7 +261,10 @@ def match(
         prediction" (the baseline position is used).
     row_gate_mm : (n,) array_like, optional
         A tighter gate per baseline fiducial (NaN or inf: the global gate): pairs costing more
-        than ``row_gate_mm[i]**2`` are not considered for row ``i``.
+        than ``row_gate_mm[i]`` are not considered for row ``i``.
+    exclude_pairs : sequence of (int, int)
+        ``(baseline_index, current_index)`` pairs that may not be matched (ruled out by
+        unit-level reasoning).
 
     Returns
     -------
@@ -282,10 +287,10 @@ def match(
     a = _PoseSet(baseline, "baseline")
     b = _PoseSet(current, "current")
     n, m = len(a), len(b)
-    gate2 = params.gate_mm**2
-    unmatched = 0.5 * gate2
+    gate = params.gate_mm
+    unmatched = 0.5 * gate
     measured = a.pos.copy()
-    row_gate2 = np.full(n, gate2)
+    row_gate = np.full(n, gate)
     if prediction_mm is not None:
         pred = np.asarray(prediction_mm, dtype=np.float64)
         if pred.shape != (len(baseline), 3):
@@ -301,12 +306,22 @@ def match(
             raise MatcherError(f"row_gate_mm must have {len(baseline)} entries, got {rg.size}")
         rg = rg[a.index]
         ok = np.isfinite(rg)
-        row_gate2[ok] = np.minimum(gate2, rg[ok] ** 2)
+        row_gate[ok] = np.minimum(gate, rg[ok])
 
     if n and m:
         ei, ej = _candidates(a, b, params)
         ec = _pair_costs(a, b, ei, ej, params)
-        keep = ec < row_gate2[ei]
+        keep = ec < row_gate[ei]
+        if len(exclude_pairs):
+            # Usable-array positions of the excluded (input-index) pairs.
+            pos_a = {int(x): k for k, x in enumerate(a.index.tolist())}
+            pos_b = {int(x): k for k, x in enumerate(b.index.tolist())}
+            bad = {
+                pos_a[i] * m + pos_b[j] for i, j in exclude_pairs if i in pos_a and j in pos_b
+            }
+            if bad:
+                keys = ei.astype(np.int64) * m + ej
+                keep &= ~np.isin(keys, np.fromiter(bad, dtype=np.int64, count=len(bad)))
         ei, ej, ec = ei[keep], ej[keep], ec[keep]
     else:
         ei = ej = np.zeros(0, dtype=np.intp)
@@ -403,7 +418,7 @@ def cost_matrix(
     current: Sequence[FiducialPose],
     **kwargs: float,
 ) -> NDArray[np.float64]:
-    """Dense ``(n, m)`` pair-cost matrix (mm^2) of :func:`match`, ``inf`` outside the gate.
+    """Dense ``(n, m)`` pair-cost matrix (mm) of :func:`match`, ``inf`` outside the gate.
 
     For diagnostics and tests on small sets; rows and columns follow the inputs (all poses must
     be usable).
@@ -415,4 +430,4 @@ def cost_matrix(
         raise MatcherError(f"cost_matrix needs usable poses; rejected: {a.rejected + b.rejected}")
     i, j = np.meshgrid(np.arange(len(a)), np.arange(len(b)), indexing="ij")
     c = _pair_costs(a, b, i.ravel(), j.ravel(), params).reshape(len(a), len(b))
-    return np.where(c < params.gate_mm**2, c, np.inf)
+    return np.where(c < params.gate_mm, c, np.inf)

@@ -62,6 +62,9 @@ from armourcam.graph import (
     stream_qos,
 )
 
+from .damage import thresholds
+from .errors import MatcherError
+from .markers import Comparer
 from .session import (
     BaselineCaptured,
     Event,
@@ -74,6 +77,7 @@ from .session import (
     SessionConfig,
     SessionError,
 )
+from .units import load_unit_map
 
 PARAMS = (
     Param("poses_topic", "/armourcam/poses", "Input: per-frame FiducialPoseRecord rows."),
@@ -125,6 +129,24 @@ PARAMS = (
         minimum=1,
     ),
     Param("auto_baseline", True, "Capture the baseline automatically before the first run."),
+    Param("dn_mm", 20.5, "Nominal armour-unit size Dn, mm.", minimum=1e-3),
+    Param(
+        "displaced_dn",
+        1.0,
+        "A unit that moved at least this many Dn counts as displaced.",
+        minimum=1e-3,
+    ),
+    Param(
+        "section_width_mm",
+        0.0,
+        "Width of the observed section across the slope, mm, for N_od (0: not reported).",
+        minimum=0.0,
+    ),
+    Param(
+        "unit_map_file",
+        "",
+        "Unit map YAML (unit id -> codes [, positions]); empty: automatic grouping.",
+    ),
     Param("frame_id", "", "frame_id of the outputs when no pose frame was seen (default: none)."),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics, s.", minimum=0.1),
 )
@@ -151,6 +173,10 @@ class MatcherNodeConfig:
     settle_fraction: float
     settle_timeout_frames: int
     auto_baseline: bool
+    dn_mm: float
+    displaced_dn: float
+    section_width_mm: float
+    unit_map_file: str
     frame_id: str
     diagnostics_period_s: float
 
@@ -210,8 +236,16 @@ class DisplacementMatcherNode(Node):
         self.config = MatcherNodeConfig(**declare_parameters(self, PARAMS))
         cfg = self.config
         try:
-            self.session = Session(cfg.session_config())
-        except SessionError as err:
+            unit_map = load_unit_map(cfg.unit_map_file) if cfg.unit_map_file else None
+            comparer = Comparer(
+                dn_mm=cfg.dn_mm,
+                displaced_dn=cfg.displaced_dn,
+                section_width_mm=cfg.section_width_mm or None,
+                unit_map=unit_map,
+            )
+            thresholds(cfg.dn_mm, displaced_dn=cfg.displaced_dn)  # bad limits fail at start-up
+            self.session = Session(cfg.session_config(), compare=comparer)
+        except (SessionError, MatcherError) as err:
             raise GraphError(f"displacement_matcher: {err}") from err
         self._frame_id = cfg.frame_id
         latched = latched_qos()

@@ -237,7 +237,9 @@ def frames_agree(
     """Whether two pose sets show the same, unmoved scene.
 
     Each fiducial of the larger set needs a partner of the same code in the other within
-    ``tolerance_mm``; at least ``fraction`` of them must have one (a glint or a passing
+    ``tolerance_mm`` plus three standard deviations of their difference (from both
+    covariances: monocular depth is far less certain than x and y, and its frame-to-frame noise
+    is not movement); at least ``fraction`` of them must have one (a glint or a passing
     occlusion may hide a few). Two empty sets agree.
     """
     if len(a) < len(b):
@@ -254,7 +256,11 @@ def frames_agree(
     dist = np.asarray(dist).reshape(len(a), k)
     idx = np.asarray(idx).reshape(len(a), k)
     codes_a = np.array([p.code for p in a])[:, None]
-    ok = np.any((dist <= tolerance_mm) & (cb[idx] == codes_a), axis=1)
+    var_a = np.array([np.trace(np.asarray(p.covariance_mm2)) for p in a])
+    var_b = np.array([np.trace(np.asarray(p.covariance_mm2)) for p in b])
+    var = np.nan_to_num(var_a[:, None] + var_b[idx], nan=0.0, posinf=0.0).clip(0.0)
+    limit = tolerance_mm + 3.0 * np.sqrt(var)
+    ok = np.any((dist <= limit) & (cb[idx] == codes_a), axis=1)
     return bool(ok.mean() >= fraction)
 
 

@@ -26,16 +26,16 @@ class MatchParams:
     Attributes
     ----------
     gate_mm : float
-        Largest weighted distance at which two fiducials may still be matched; leaving both
-        unmatched costs ``gate_mm**2``, so a pair is matched only when its cost is below that.
+        Largest cost at which two fiducials may still be matched; leaving both unmatched costs
+        ``gate_mm``, so a pair is matched only when its cost is below that.
     code_penalty_mm : float
-        Added to the weighted distance (in quadrature) when the codes differ; ``inf`` forbids
-        cross-code matches.
+        Added to the weighted distance when the codes differ; ``inf`` forbids cross-code
+        matches.
     motion_scale_mm : float
         Displacement scale ``s`` of the weighting ``W = s^2 (s^2 I + C_a + C_b)^-1``: directions in
         which the two poses are uncertain compared with ``s`` (depth, mostly) count less.
     normal_weight_mm : float
-        Added in quadrature per unit of ``(1 - n_a . n_b)`` (0 disables normals in the cost).
+        Added per unit of ``(1 - n_a . n_b)`` (0 disables normals in the cost).
     """
 
     gate_mm: float
@@ -59,8 +59,8 @@ class Displacement:
     before_mm, after_mm : (3,) ndarray or None
         Positions, camera frame, mm.
     cost : float
-        This entry's share of the optimal total cost, mm^2 (the weighted squared distance plus the
-        code penalty for a pair; ``gate_mm**2 / 2`` for an unmatched fiducial).
+        This entry's share of the optimal total cost, mm (the weighted distance plus the code
+        penalty for a pair; ``gate_mm / 2`` for an unmatched fiducial).
     sigma_mm : (3,) ndarray or None
         Standard deviation of the displacement's x, y, z (from both covariances), mm.
     """
@@ -129,7 +129,7 @@ class MatchResult:
     baseline, current : tuple of FiducialPose
         The inputs.
     total_cost : float
-        Sum of the entries' costs, mm^2: the minimum over all partial matchings (rejected poses
+        Sum of the entries' costs, mm: the minimum over all partial matchings (rejected poses
         excluded).
     rejected : tuple of RejectedPose
         Poses that could not be used (non-finite position, bad covariance), never silently lost.

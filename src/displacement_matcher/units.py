@@ -16,6 +16,7 @@ Unit map YAML (lengths in mm, positions in the unit's own frame)::
     template:               # the same code set on every unit
       codes: [3, 17, 29, 41]
       positions_mm: {3: [9.5, 15.2, 0], 17: [9.5, -15.2, 0], 29: [-9.5, 0, 15.2], 41: [-9.5, 0, -15.2]}
+      normals: {3: [0, 1, 1], 17: [0, -1, 1], 29: [0, 0, 1], 41: [0, 0, -1]}   # optional
       span_mm: 35           # optional: largest distance between two fiducials of a unit
 
 Per unit the motion is a weighted rigid fit (Kabsch/Umeyama without scale) when at least three of
@@ -28,7 +29,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -59,11 +60,14 @@ class UnitSpec:
         Codes of its fiducials.
     positions_mm : dict of int to (3,) ndarray
         Fiducial centres on the unit (unit frame, mm), for the codes that have one.
+    normals : dict of int to (3,) ndarray
+        Unit normals of the printed faces on the unit (unit frame), for the codes that have one.
     """
 
     unit: str
     codes: tuple[int, ...]
     positions_mm: dict[int, NDArray[np.float64]]
+    normals: dict[int, NDArray[np.float64]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -103,7 +107,7 @@ def _codes(value: Any, where: str) -> tuple[int, ...]:
 def _spec(name: str, doc: Any) -> UnitSpec:
     if not isinstance(doc, Mapping):
         raise MatcherError(f"unit {name!r}: expected a mapping with 'codes', got {doc!r}")
-    unknown = set(doc) - {"codes", "positions_mm", "span_mm"}
+    unknown = set(doc) - {"codes", "positions_mm", "normals", "span_mm"}
     if unknown:
         raise MatcherError(f"unit {name!r}: unknown keys {sorted(map(str, unknown))}")
     codes = _codes(doc.get("codes"), f"unit {name!r}")
@@ -122,7 +126,23 @@ def _spec(name: str, doc: Any) -> UnitSpec:
         if not np.all(np.isfinite(p)):
             raise MatcherError(f"unit {name!r}: position of code {code} is not finite")
         positions[code] = p
-    return UnitSpec(str(name), codes, positions)
+    normals: dict[int, NDArray[np.float64]] = {}
+    raw = doc.get("normals") or {}
+    if not isinstance(raw, Mapping):
+        raise MatcherError(f"unit {name!r}: normals must map codes to [nx, ny, nz]")
+    for key, value in raw.items():
+        try:
+            code = int(key)
+            v = np.asarray(value, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError) as err:
+            raise MatcherError(f"unit {name!r}: bad normal for code {key!r}: {value!r}") from err
+        if code not in codes:
+            raise MatcherError(f"unit {name!r}: normal given for code {code} not in {codes}")
+        length = float(np.linalg.norm(v))
+        if not (np.isfinite(length) and length > 0):
+            raise MatcherError(f"unit {name!r}: normal of code {code} is zero or not finite")
+        normals[code] = v / length
+    return UnitSpec(str(name), codes, positions, normals)
 
 
 def parse_unit_map(doc: Any) -> UnitMap:
@@ -185,13 +205,16 @@ def group_fiducials(
     span_mm: float = DEFAULT_SPAN_MM,
     template: UnitSpec | None = None,
     tol_mm: float = DEFAULT_RIGID_TOL_MM,
+    normal_tol: float = 0.3,
 ) -> list[list[int]]:
     """Group the fiducials of one state into units by proximity and code set.
 
     Pairs closer than ``span_mm`` with different codes are joined in order of increasing distance
     (complete linkage) as long as a group never holds one code twice, every pair in it is within
     ``span_mm`` and, when ``template`` gives positions for both codes, their distance agrees with
-    the template's within ``tol_mm`` plus three standard deviations. Fiducials whose code is not in
+    the template's within ``tol_mm`` plus three standard deviations, and when it gives normals
+    too, the rigid invariants of the two oriented fiducials (``n_i . n_j`` and each normal against
+    the line between them) agree within ``normal_tol``. Fiducials whose code is not in
     ``template.codes`` (when given) are left out; non-finite poses are left out.
 
     Returns
@@ -222,6 +245,18 @@ def group_fiducials(
                 np.linalg.norm(template.positions_mm[ca] - template.positions_mm[cb])
             )
 
+    nrm = np.array([poses[i].normal for i in idx], dtype=np.float64).reshape(-1, 3)
+    nlen = np.linalg.norm(nrm, axis=1)
+    has_n = np.isfinite(nlen) & (nlen > 0.5)
+    nrm = np.where(has_n[:, None], nrm / np.where(has_n, nlen, 1.0)[:, None], 0.0)
+    tinv: dict[tuple[int, int], tuple[float, float, float]] = {}
+    if template is not None:
+        tp, tn = template.positions_mm, template.normals
+        for ca, cb in itertools.permutations(tp, 2):
+            if ca in tn and cb in tn:
+                u = (tp[cb] - tp[ca]) / max(float(np.linalg.norm(tp[cb] - tp[ca])), 1e-9)
+                tinv[(ca, cb)] = (float(tn[ca] @ tn[cb]), float(tn[ca] @ u), float(tn[cb] @ u))
+
     def mismatch(i: int, j: int) -> float:
         """Template distance error over its tolerance (<= 1 compatible); inf if incompatible."""
         if code[i] == code[j]:
@@ -235,7 +270,15 @@ def group_fiducials(
             return 0.0
         u = v / max(d, 1e-9)
         sd = float(np.sqrt(max(u @ (cov[i] + cov[j]) @ u, 0.0)))
-        return abs(d - tdist[key]) / (tol_mm + 3.0 * sd)
+        score = abs(d - tdist[key]) / (tol_mm + 3.0 * sd)
+        if key in tinv and has_n[i] and has_n[j]:
+            # Rigid invariants of two oriented points: n_i.n_j and each normal against the
+            # direction between them (from i to j), to within ~15 deg.
+            w = -u  # pos[j] - pos[i], normalised
+            seen = (float(nrm[i] @ nrm[j]), float(nrm[i] @ w), float(nrm[j] @ w))
+            err = max(abs(a - b) for a, b in zip(seen, tinv[key], strict=True))
+            score = max(score, err / normal_tol)
+        return score
 
     def compatible(i: int, j: int) -> bool:
         return mismatch(i, j) <= 1.0
@@ -296,30 +339,70 @@ def kabsch(
 
 
 def _consistent_subset(
-    before: NDArray[np.float64], after: NDArray[np.float64], tol: NDArray[np.float64]
+    before: NDArray[np.float64],
+    after: NDArray[np.float64],
+    sigma: NDArray[np.float64],
+    turn: NDArray[np.float64],
+    tol_mm: float,
 ) -> list[int]:
-    """Largest subset of matches whose pairwise distances are preserved within ``tol[i] + tol[j]``.
+    """Largest subset of a unit's matches that one rigid motion can explain.
 
-    A rigid body keeps every distance, so a match that changes distances to the others is wrong.
-    Ties go to the subset with the smallest total distance change.
+    Two matches ``i, j`` agree when the distance between them is preserved and their displacements
+    differ by no more than a rotation can make them: ``|d_i - d_j| <= 2 sin(theta / 2) |p_i - p_j|``
+    where ``theta`` bounds the unit's rotation from the turn of the two fiducials' normals (plus
+    15 deg for normal noise), each within ``tol_mm`` plus three standard deviations along the line.
+    Among subsets of equal size the one with the smallest total displacement wins (most units do
+    not move: a still unit's hidden fiducial that grabbed a stranger loses to its matched ones),
+    then the one with the smallest distance change.
+
+    Parameters
+    ----------
+    before, after : (k, 3) ndarray
+        Matched positions, mm.
+    sigma : (k, 3) ndarray
+        Standard deviations of the displacements, mm.
+    turn : (k,) ndarray
+        Angle between each fiducial's normal before and after, radians (NaN: unknown).
     """
     k = len(before)
     if k <= 1:
         return list(range(k))
-    db = np.linalg.norm(before[:, None] - before[None], axis=2)
+    vb = before[:, None] - before[None]
+    db = np.linalg.norm(vb, axis=2)
     da = np.linalg.norm(after[:, None] - after[None], axis=2)
+    disp = after - before
+    move = np.linalg.norm(disp, axis=1)
+    ddiff = np.linalg.norm(disp[:, None] - disp[None], axis=2)
+    u = vb / np.maximum(db, 1e-9)[..., None]
+    var = np.einsum("ijk,ik->ij", u**2, sigma**2) + np.einsum("ijk,jk->ij", u**2, sigma**2)
+    tol = tol_mm + 3.0 * np.sqrt(var)
     err = np.abs(db - da)
-    ok = err <= tol[:, None] + tol[None, :]
+    t = np.where(np.isfinite(turn), turn, np.pi)
+    theta = np.minimum(np.maximum(t[:, None], t[None, :]) + np.radians(15.0), np.pi)
+    ok = (err <= tol) & (ddiff <= 2.0 * np.sin(theta / 2.0) * db + tol)
     for size in range(k, 0, -1):
-        best: tuple[float, list[int]] | None = None
+        best: tuple[float, float, list[int]] | None = None
         for sub in itertools.combinations(range(k), size):
             if all(ok[i, j] for i, j in itertools.combinations(sub, 2)):
-                score = float(sum(err[i, j] for i, j in itertools.combinations(sub, 2)))
-                if best is None or score < best[0]:
-                    best = (score, list(sub))
+                key = (
+                    float(sum(move[i] for i in sub)),
+                    float(sum(err[i, j] for i, j in itertools.combinations(sub, 2))),
+                )
+                if best is None or key < best[:2]:
+                    best = (key[0], key[1], list(sub))
         if best is not None:
-            return best[1]
+            return best[2]
     return []
+
+
+def _turn(a: FiducialPose, b: FiducialPose) -> float:
+    """Angle between two poses' normals, radians (NaN when either is unusable)."""
+    na = np.asarray(a.normal, dtype=np.float64).reshape(-1)
+    nb = np.asarray(b.normal, dtype=np.float64).reshape(-1)
+    la, lb = float(np.linalg.norm(na)), float(np.linalg.norm(nb))
+    if na.size != 3 or nb.size != 3 or not (la > 0 and lb > 0) or not np.isfinite(la * lb):
+        return float("nan")
+    return float(np.arccos(np.clip(na @ nb / (la * lb), -1.0, 1.0)))
 
 
 def _rotation_deg(R: NDArray[np.float64]) -> float:
@@ -443,7 +526,12 @@ def unit_motions(
             appeared_of[best] += 1
 
     out: list[UnitMotion] = []
+    normals = unit_map.template.normals if unit_map is not None and unit_map.template else {}
     for n, (name, ix) in enumerate(unit_list):
+        before_codes = {int(base[i].code) for i in ix}
+        new_codes = tuple(
+            sorted({int(cur[j].code) for j in cur_of[n]} - before_codes)
+        )
         out.append(
             _motion_of_unit(
                 name,
@@ -453,8 +541,11 @@ def unit_motions(
                 vanished_of[n],
                 appeared_of[n],
                 base,
+                cur,
                 rigid_tol_mm,
                 overturn_deg,
+                new_codes,
+                normals,
             )
         )
     return tuple(out), tuple(unassigned)
@@ -468,10 +559,17 @@ def _motion_of_unit(
     n_vanished: int,
     n_appeared: int,
     base: tuple[FiducialPose, ...],
+    cur: tuple[FiducialPose, ...],
     rigid_tol_mm: float,
     overturn_deg: float,
+    new_codes: tuple[int, ...] = (),
+    normals: dict[int, NDArray[np.float64]] | None = None,
 ) -> UnitMotion:
-    """Motion of one unit from its matched fiducials (see :func:`unit_motions`)."""
+    """Motion of one unit from its matched fiducials (see :func:`unit_motions`).
+
+    ``new_codes`` are the codes it shows now that it did not show before (appeared or cross-code
+    partners); ``normals`` the template's face normals by code.
+    """
     codes = tuple(int(base[i].code) for i in ix)
     nan3 = np.full(3, np.nan)
     ref_all = (
@@ -481,8 +579,20 @@ def _motion_of_unit(
     same = [d for d in pairs if d.label == "same_code"]
     use = same if same else [d for d in pairs if d.label == "cross_code"]
     # Fiducials seen before now face away and other faces show instead: turned over. (A unit
-    # with any same-code match still shows a face it showed before.)
-    turned_over = bool(ix) and not same and (n_cross + n_appeared) >= 1
+    # with any same-code match still shows a face it showed before.) With the template's normals
+    # a face now shown must point against one that vanished; without them one vanished face is
+    # too little evidence.
+    turned_over = bool(ix) and not same and bool(new_codes)
+    if turned_over and normals:
+        old_codes = [c for c in codes if c in normals]
+        turned_over = any(
+            float(normals[a] @ normals[b]) < -0.3
+            for a in new_codes
+            if a in normals
+            for b in old_codes
+        )
+    elif turned_over:
+        turned_over = len(ix) >= 2
     if not ix:
         status = "unseen"
         return UnitMotion(
@@ -496,9 +606,12 @@ def _motion_of_unit(
         )  # fmt: skip
     before = np.array([d.before_mm for d in use], dtype=np.float64)
     after = np.array([d.after_mm for d in use], dtype=np.float64)
-    var = np.array([float(np.sum(d.sigma_mm**2)) / 3.0 for d in use])
-    tol = rigid_tol_mm / 2.0 + 3.0 * np.sqrt(var)
-    keep = _consistent_subset(before, after, tol) if same else list(range(len(use)))
+    sig = np.array([d.sigma_mm for d in use], dtype=np.float64).reshape(-1, 3)
+    var = np.sum(sig**2, axis=1) / 3.0
+    turn = np.array([_turn(base[d.baseline_index], cur[d.current_index]) for d in use])
+    keep = (
+        _consistent_subset(before, after, sig, turn, rigid_tol_mm) if same else list(range(len(use)))
+    )
     before, after, var = before[keep], after[keep], var[keep]
     w = 1.0 / np.maximum(var, 1e-6)
     if len(keep) >= 3 and np.linalg.matrix_rank(before - before.mean(axis=0), tol=1e-6) >= 2:
@@ -598,6 +711,18 @@ def match_units(
     kw = {"unit_map": unit_map, "span_mm": span_mm, "rigid_tol_mm": rigid_tol_mm,
           "overturn_deg": overturn_deg, "groups": groups}  # fmt: skip
     units, unassigned = unit_motions(result, **kw)  # type: ignore[arg-type]
+    span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
+    template = unit_map.template if unit_map is not None else None
+    explicit = unit_map is not None and bool(unit_map.units)
+    # The current state's own units: fiducials seen together now belong to one unit.
+    cur_groups: list[list[int]] = []
+    if not explicit:
+        cur_ok = [j for j, p in enumerate(current) if np.all(np.isfinite(p.position_mm))]
+        found = group_fiducials(
+            [current[j] for j in cur_ok], span_mm=span, template=template, tol_mm=rigid_tol_mm
+        )
+        cur_groups = [[cur_ok[k] for k in g] for g in found]
+    excluded: set[tuple[int, int]] = set()
     passes = 1
     for _ in range(refine_passes):
         pred = np.full((len(baseline), 3), np.nan)
@@ -610,7 +735,45 @@ def match_units(
                 p = np.asarray(baseline[i].position_mm, dtype=np.float64)
                 pred[i] = u.rotation @ (p - ref) + ref + u.translation_mm
                 gate[i] = rigid_gate_mm if u.method == "rigid" else translation_gate_mm
-        result = match(baseline, current, prediction_mm=pred, row_gate_mm=gate, **match_kw)
+        excluded |= _unit_conflicts(result, groups[0], cur_groups)
+        result = match(
+            baseline,
+            current,
+            prediction_mm=pred,
+            row_gate_mm=gate,
+            exclude_pairs=sorted(excluded),
+            **match_kw,
+        )
         units, unassigned = unit_motions(result, **kw)  # type: ignore[arg-type]
         passes += 1
     return UnitAnalysis(result, units, unassigned, passes)
+
+
+def _unit_conflicts(
+    result: MatchResult,
+    base_units: list[tuple[str, list[int]]],
+    cur_groups: list[list[int]],
+) -> set[tuple[int, int]]:
+    """Pairs that contradict the current state's grouping.
+
+    When one current unit's fiducials are matched to several baseline units, the baseline unit
+    with most of them is that unit; pairs into it from baseline units with fewer are wrong (a
+    still unit's hidden fiducial grabbing a moved neighbour's newly visible one, say).
+    """
+    unit_of = {i: n for n, (_, ix) in enumerate(base_units) for i in ix}
+    pair_of = {d.current_index: d.baseline_index for d in result.displacements if d.is_match}
+    out: set[tuple[int, int]] = set()
+    for g in cur_groups:
+        members = [(pair_of[j], j) for j in g if j in pair_of]
+        owners = [unit_of.get(i, -1 - i) for i, _ in members]
+        if len(set(owners)) < 2:
+            continue
+        counts = {o: owners.count(o) for o in owners}
+        top = max(counts.values())
+        winners = [o for o, c in counts.items() if c == top]
+        if len(winners) != 1:
+            continue
+        for (i, j), o in zip(members, owners, strict=True):
+            if o != winners[0] and i is not None:
+                out.add((int(i), int(j)))
+    return out

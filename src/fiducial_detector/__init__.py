@@ -8,6 +8,10 @@ from __future__ import annotations
 
 from .codebook import code_bits, code_count, decode
 from .design import DESIGNS, FiducialDesign, get_design, reflectance
+
+# Imported eagerly: a lazy import would leave the package attribute ``detect`` bound to the
+# submodule of that name whenever the submodule is imported first.
+from .detect import detect
 from .errors import DetectorError
 from .types import Ellipse, FiducialDetection
 
@@ -24,12 +28,3 @@ __all__ = [
     "get_design",
     "reflectance",
 ]
-
-
-def __getattr__(name: str) -> object:
-    # The detector pulls in OpenCV; import it lazily so that light users (codebook, design) stay fast.
-    if name == "detect":
-        from .detect import detect
-
-        return detect
-    raise AttributeError(name)

@@ -69,6 +69,9 @@ class TrackReading:
     ----------
     accepted : (N,) bool
         Passed every rejection rule.
+    consistent : (N,) bool
+        Passed rules 1-3 (inside the image, contrast, concentric regions): looks like a fiducial of
+        the design whatever the code read.
     code, rotation_sector, hamming : (N,) int64
         Nearest code, the code's sector read first, Hamming distance (``BITS + 1`` when more than
         one sector is wrong or the candidate was rejected before decoding).
@@ -84,6 +87,7 @@ class TrackReading:
     """
 
     accepted: NDArray[np.bool_]
+    consistent: NDArray[np.bool_]
     code: NDArray[np.int64]
     rotation_sector: NDArray[np.int64]
     hamming: NDArray[np.int64]
@@ -295,6 +299,7 @@ def read_codes(
         white_bad = (white_s < mid[:, None]).mean(axis=1)
     ok = valid & (contrast >= cfg.min_contrast)
     ok &= (black_bad <= cfg.max_ref_outliers) & (white_bad <= cfg.max_ref_outliers)
+    consistent = ok.copy()
 
     words = (bits.astype(np.int64) << np.arange(BITS)).sum(axis=1)
     t_code, t_rot, t_dist = _decode_table()
@@ -317,6 +322,7 @@ def read_codes(
     rotation = np.arctan2(d[:, 1], d[:, 0])
     return TrackReading(
         accepted=ok,
+        consistent=consistent,
         code=code,
         rotation_sector=rot,
         hamming=dist,

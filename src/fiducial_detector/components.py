@@ -124,7 +124,7 @@ def outer_boundaries(binary: NDArray[np.uint8], *, max_extent: float) -> Boundar
 HULL_RETRY_BELOW = 0.85
 #: Fraction of a boundary's points that must lie in the outer part of its hull's ellipse (a thin
 #: broken ring: the outer edge at radius 1, the inner edge at 0.8 of it).
-HULL_MIN_ON_ELLIPSE = 0.9
+HULL_MIN_ON_ELLIPSE = 0.6
 
 
 def _moment_ellipses(mom: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -155,13 +155,13 @@ def _size_ok(ell: NDArray[np.float64], max_extent: float) -> NDArray[np.bool_]:
 
 
 def _on_ellipse(contour: NDArray[np.int32], row: NDArray[np.float64]) -> float:
-    """Fraction of a boundary's points between 0.7 and 1.1 times the ellipse ``row``'s radius."""
+    """Fraction of a boundary's points between 0.55 and 1.12 times the ellipse ``row``'s radius."""
     pts = contour.reshape(-1, 2).astype(np.float64) - row[:2]
     c, s = np.cos(row[4]), np.sin(row[4])
     x = (pts[:, 0] * c + pts[:, 1] * s) / row[2]
     y = (-pts[:, 0] * s + pts[:, 1] * c) / row[3]
     rho = np.sqrt(x * x + y * y)
-    return float(np.mean((rho > 0.7) & (rho < 1.1)))
+    return float(np.mean((rho > 0.55) & (rho < 1.12)))
 
 
 def _empty() -> Boundaries:

@@ -225,20 +225,48 @@ def _finish(
     if len(cands.centre) == 0:
         return []
     design = cands.design
+    r0 = design.pose_circle.radius
     first = read_codes(
         grey, full_scale, design, cands.centre, cands.axes, cands.angle, cands.drift, reader
     )
+    noise = _noise_std(grey)
+    retry = np.nonzero(first.consistent & ~first.accepted)[0]
+    if retry.size:
+        # Second chance for candidates that look like fiducials but whose code did not read:
+        # small boundaries give poor coarse ellipses, so fit the pose circle and read again.
+        seeds0 = [_scaled_seed(cands, i, 1.0, 0.0) for i in retry.tolist()]
+        refits = fit_ellipses(grey, seeds0, r0, noise_std=noise)
+        good = [
+            (i, e)
+            for i, e, s in zip(retry.tolist(), refits, seeds0, strict=True)
+            if e is not None and _plausible(e, s)
+        ]
+        if good:
+            gi = np.array([i for i, _ in good])
+            cands.centre[gi] = [e.center_px for _, e in good]
+            cands.axes[gi] = [(e.semi_major, e.semi_minor) for _, e in good]
+            cands.angle[gi] = [e.angle for _, e in good]
+            again = read_codes(
+                grey,
+                full_scale,
+                design,
+                cands.centre[gi],
+                cands.axes[gi],
+                cands.angle[gi],
+                cands.drift[gi],
+                reader,
+            )
+            for name in ("accepted", "code"):
+                getattr(first, name)[gi] = getattr(again, name)
     idx = np.nonzero(first.accepted)[0]
     if idx.size == 0:
         return []
-    r0 = design.pose_circle.radius
     seeds: list[Ellipse] = []
     radii: list[float] = []
     for i in idx.tolist():
         for circle in design.circles:
             seeds.append(_scaled_seed(cands, i, circle.radius / r0, circle.radius**2 - r0**2))
             radii.append(circle.radius)
-    noise = _noise_std(grey)
     fits = fit_ellipses(grey, seeds, radii, noise_std=noise)
     m = len(design.circles)
     keep: list[int] = []
@@ -250,7 +278,9 @@ def _finish(
             continue
         # Inner circles whose fit failed are left out: the pose circle always comes first.
         others = [
-            e for e, s in zip(group[1:], seeds[j * m + 1 :], strict=True) if e and _plausible(e, s)
+            e
+            for e, s in zip(group[1:], seeds[j * m + 1 : (j + 1) * m], strict=True)
+            if e and _plausible(e, s)
         ]
         keep.append(i)
         fitted.append((pose, *others))

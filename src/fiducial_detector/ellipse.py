@@ -36,6 +36,7 @@ References
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -59,7 +60,8 @@ _MIN_BAND_PX = 1.5
 _SEED_SLACK_PX = 1.0  # extra band half-width in the first iteration, for the seed's error
 _MIN_COS = 0.85  # gradient direction vs ellipse normal: |angle| <= ~32 degrees
 _MIN_PIXELS = 12  # fewer band pixels than this cannot determine an ellipse reliably
-_ITERATIONS = 3
+_MAX_REFINEMENTS = 3  # passes after the first, while a fit still moves by > _CONVERGED_PX
+_CONVERGED_PX = 0.01
 _GPOW = 2.0
 _TAPER = 0.0
 
@@ -67,6 +69,9 @@ _TAPER = 0.0
 # (dv, du, weight) triples; the v derivative is the transpose.
 _SCHARR_U = ((-1, -1, -3.0), (-1, 1, 3.0), (0, -1, -10.0), (0, 1, 10.0), (1, -1, -3.0), (1, 1, 3.0))
 _SCHARR_KERNEL = np.array([[-3.0, 0.0, 3.0], [-10.0, 0.0, 10.0], [-3.0, 0.0, 3.0]]) / 32.0
+# Scharr kernels rotated by 180 degrees (= negated), for the adjoint of the gradient filter.
+_FLIPPED_U = np.ascontiguousarray(-_SCHARR_KERNEL, dtype=np.float32)
+_FLIPPED_V = np.ascontiguousarray(-_SCHARR_KERNEL.T, dtype=np.float32)
 
 
 SeedLike = Ellipse | ArrayLike
@@ -130,32 +135,56 @@ def _ellipses_from_conics(C: NDArray[np.float64]) -> NDArray[np.float64]:
 def estimate_noise(image: ArrayLike) -> float:
     """Robust standard deviation of additive white noise in an image, in its intensity units.
 
-    Immerkær's Laplacian-difference estimator with a median instead of a mean, so that edges (less
-    than half of the pixels) do not inflate it. Large images are subsampled by row blocks.
+    Immerkær's Laplacian-difference estimator, made robust to edges: its mean absolute response
+    is taken only over pixels whose 3x3 neighbourhood has no gradient clearly above the noise
+    (starting from a median-based estimate; two passes), so printed edges do not inflate it.
+    Large images are subsampled by row blocks.
 
     Parameters
     ----------
     image : (H, W) array_like
-        Grey image, at least 3x3.
+        Grey image, at least 5x5.
+
+    Returns
+    -------
+    float
+        Noise standard deviation (NaN when no flat pixel is left); at least the quantisation
+        noise ``1/sqrt(12)`` for integer images.
     """
-    img = np.asarray(image, dtype=np.float32)
-    if img.ndim != 2 or min(img.shape) < 3:
-        raise DetectorError(f"noise estimation needs a 2-D image of at least 3x3, got {img.shape}")
-    if img.size > 400_000:
-        # Every 16th block of 3 rows keeps the estimate cheap on full frames.
-        rows = np.arange(0, img.shape[0] - 2, 16)
-        blocks = [img[r : r + 3] for r in rows]
-        img = np.concatenate([_laplacian_valid(b).ravel() for b in blocks])
-        response = img
-    else:
-        response = _laplacian_valid(img).ravel()
-    response = response[np.isfinite(response)]
+    arr = np.asarray(image)
+    img = np.asarray(arr, dtype=np.float32)
+    if img.ndim != 2 or min(img.shape) < 5:
+        raise DetectorError(f"noise estimation needs a 2-D image of at least 5x5, got {img.shape}")
+    # On full frames, every other block of 8 rows keeps the estimate cheap.
+    big = img.size > 400_000
+    blocks = [img[r : r + 8] for r in range(0, img.shape[0] - 7, 16)] if big else [img]
+    lap, grad = [], []
+    for blk in blocks:
+        # Largest central difference in the 3x3 neighbourhood of each pixel (edge detector).
+        g = np.maximum(
+            np.abs(blk[1:-1, 2:] - blk[1:-1, :-2]), np.abs(blk[2:, 1:-1] - blk[:-2, 1:-1])
+        )
+        g = cv2.dilate(np.nan_to_num(g, nan=np.inf), np.ones((3, 3), np.uint8))
+        lap.append(_laplacian_valid(blk).ravel())
+        grad.append(g.ravel())
+    response = np.abs(np.concatenate(lap))
+    gmax = np.concatenate(grad)
+    finite = np.isfinite(response)
+    response, gmax = response[finite], gmax[finite]
     if response.size == 0:
         return float("nan")
     # The mask [[1,-2,1],[-2,4,-2],[1,-2,1]] has sum of squares 36; 0.6745 = median|N(0,1)|.
-    sigma = float(np.median(np.abs(response))) / (0.6745 * 6.0)
-    # Quantisation floor: a perfectly flat integer image still has 1/sqrt(12) of rounding noise.
-    if np.issubdtype(np.asarray(image).dtype, np.integer):
+    sigma = float(np.median(response)) / (0.6745 * 6.0)
+    for _ in range(2):
+        # A central difference of pure noise has std sigma * sqrt(2); 3.5 of those is an edge.
+        flat = gmax <= 3.5 * np.sqrt(2.0) * max(sigma, 0.5)
+        if np.count_nonzero(flat) < 0.1 * response.size:
+            break
+        # Mean absolute response over flat pixels (Immerkær's form; smoother than the median on
+        # integer images): E|N(0, 36 sigma^2)| = 6 sigma sqrt(2 / pi).
+        sigma = float(np.mean(response[flat])) * np.sqrt(0.5 * np.pi) / 6.0
+    if np.issubdtype(arr.dtype, np.integer):
+        # Quantisation floor: integer images carry at least 1/sqrt(12) of rounding noise.
         sigma = max(sigma, 1.0 / np.sqrt(12.0))
     return sigma
 
@@ -190,7 +219,9 @@ def _seed_parameters(seed: SeedLike, origin: tuple[int, int]) -> NDArray[np.floa
         p = np.array([cu, cv, a, b, np.mod(ang, np.pi)])
     p[0] -= origin[0]
     p[1] -= origin[1]
-    if not np.all(np.isfinite(p)) or p[3] <= 0 or p[2] < p[3]:
+    if p[3] > p[2]:
+        p[2], p[3], p[4] = p[3], p[2], np.mod(p[4] + 0.5 * np.pi, np.pi)
+    if not np.all(np.isfinite(p)) or p[3] <= 0:
         return np.full(5, np.nan)
     return p
 
@@ -243,33 +274,37 @@ def _band_pixels(
     r1 = np.where(hole, np.floor(ilo), np.floor(ohi))
     l2 = np.where(hole, np.ceil(ihi), 0.0)
     r2 = np.where(hole, np.floor(ohi), -1.0)
-    starts = np.concatenate([l1, l2])
-    ends = np.concatenate([r1, r2])
+    # Runs ordered by (fit, row, left/right), so the pixels come out grouped by fit.
+    starts = np.column_stack([l1, l2]).ravel()
+    ends = np.column_stack([r1, r2]).ravel()
     starts = np.maximum(np.nan_to_num(starts, nan=1.0), 1.0)
     ends = np.minimum(np.nan_to_num(ends, nan=-1.0), width - 2.0)
     lengths = np.maximum(ends - starts + 1, 0).astype(np.intp)
-    run_fit = np.concatenate([fit, fit])
-    run_v = np.concatenate([v, v])
+    run_fit = np.repeat(fit, 2)
+    run_v = np.repeat(v, 2)
     total = int(lengths.sum())
     run_of = np.repeat(np.arange(lengths.size), lengths)
     run_first = np.cumsum(lengths) - lengths
     pu = starts.astype(np.intp)[run_of] + (np.arange(total) - run_first[run_of])
-    pv = run_v[run_of]
-    pf = run_fit[run_of]
-    order = np.argsort(pf, kind="stable")
-    return pf[order], pu[order], pv[order]
+    return run_fit[run_of], pu, run_v[run_of]
 
 
 def _gradients_at(
-    img: NDArray[np.float64], u: NDArray[np.intp], v: NDArray[np.intp]
+    img: NDArray[np.float32], u: NDArray[np.intp], v: NDArray[np.intp]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Scharr derivatives (intensity per pixel) at pixels ``(u, v)`` (not on the border)."""
-    gu = np.zeros(u.shape)
-    gv = np.zeros(u.shape)
+    flat = img.ravel()
+    stride = img.shape[1]
+    base = v * stride + u
+    gu = np.zeros(u.shape, dtype=np.float32)
+    gv = np.zeros(u.shape, dtype=np.float32)
+    # Differences of opposite neighbours, then the [3, 10, 3] smoothing across.
     for dv, du, w in _SCHARR_U:
-        gu += (w / 32.0) * img[v + dv, u + du]
-        gv += (w / 32.0) * img[v + du, u + dv]
-    return gu, gv
+        if du < 0:
+            continue
+        gu += np.float32(w / 32.0) * (flat[base + dv * stride + 1] - flat[base + dv * stride - 1])
+        gv += np.float32(w / 32.0) * (flat[base + stride + dv] - flat[base - stride + dv])
+    return gu.astype(np.float64), gv.astype(np.float64)
 
 
 def _segments(fit: NDArray[np.intp], n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -289,12 +324,20 @@ def _segment_sum(values: NDArray[np.float64], fit: NDArray[np.intp], n: int) -> 
     return out
 
 
+def _per_fit(value: float | Sequence[float], n: int, name: str) -> NDArray[np.float64]:
+    """A scalar or one value per seed, as a float array of length ``n``."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim > 1 or (arr.ndim == 1 and arr.size != n):
+        raise DetectorError(f"{name} must be a number or one per seed ({n}), got shape {arr.shape}")
+    return np.broadcast_to(arr, (n,)).copy()
+
+
 def fit_ellipses(
     image: ArrayLike,
     seeds: Sequence[SeedLike],
     radii: Sequence[float] | float,
     *,
-    band_px: float | None = None,
+    band_px: float | Sequence[float] | None = None,
     gradients: tuple[ArrayLike, ArrayLike] | None = None,
     origin: tuple[int, int] = (0, 0),
     noise_std: float | None = None,
@@ -311,11 +354,14 @@ def fit_ellipses(
         ``cv2.fitEllipse`` of a component boundary) or the boundary points ``(u, v)`` themselves.
     radii : sequence of float, or float
         Nominal radius of each printed circle (fraction of the outer radius), stored in the result.
-    band_px : float, optional
+    band_px : float or sequence of float, optional
         Half-width of the pixel band around the edge in the final iterations. Default: half the
         seed's semi-minor axis, clipped to ``[1.5, DEFAULT_BAND_PX]`` pixels (right for blur
         sigma up to ~1 px; narrower on small ellipses, whose neighbouring printed edges are
-        close). The first iteration adds one pixel for the seed's error.
+        close). The first iteration adds one pixel for the seed's error. A caller that knows
+        the printed geometry should keep it below half the distance to the nearest other
+        printed edge (e.g. code sectors next to a thin ring), whose blurred gradients otherwise
+        bias the fit even though their polarity excludes them.
     gradients : (gu, gv) of (H, W) array_like, optional
         Precomputed derivatives of ``image`` along u and v, which must be Scharr derivatives in
         intensity per pixel (``cv2.Scharr(img, cv2.CV_32F, 1, 0) / 32``) for the covariance to
@@ -348,18 +394,20 @@ def fit_ellipses(
     if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
         raise DetectorError(f"image must have a real dtype, got {img.dtype}")
     n = len(seeds)
-    radius_arr = np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,))
+    radius_arr = _per_fit(radii, n, "radii")
     if gradients is not None:
         gshape = tuple(np.shape(g) for g in gradients)
         if len(gshape) != 2 or any(s != img.shape for s in gshape):
             raise DetectorError(f"gradients must be two arrays of shape {img.shape}, got {gshape}")
-    if band_px is not None and not band_px > 0.5:
-        raise DetectorError(f"band_px must be > 0.5 pixel, got {band_px}")
+    if band_px is not None:
+        band_arr = _per_fit(band_px, n, "band_px")
+        if not np.all(band_arr > 0.5):
+            raise DetectorError(f"band_px must be > 0.5 pixel, got {band_px}")
     if n == 0:
         return []
     if min(img.shape) < 5:
         return [None] * n
-    imgf = np.asarray(img, dtype=np.float64)
+    imgf = np.ascontiguousarray(img, dtype=np.float32)
     sigma = estimate_noise(imgf) if noise_std is None else float(noise_std)
     if np.issubdtype(img.dtype, np.integer) and noise_std is None:
         sigma = max(sigma, 1.0 / np.sqrt(12.0))
@@ -369,6 +417,7 @@ def fit_ellipses(
     params = np.array([_seed_parameters(s, origin) for s in seeds]).reshape(n, 5)
     ok = np.all(np.isfinite(params), axis=1)
     params[~ok] = np.array([0.0, 0.0, 1.0, 1.0, 0.0])
+    seed_params = params.copy()
     if dark_inside is None:
         sign = np.full(n, np.nan)
     else:
@@ -378,14 +427,26 @@ def fit_ellipses(
         # Narrow the band on small ellipses, whose neighbouring printed edges are close.
         band = np.clip(0.5 * params[:, 3], _MIN_BAND_PX, DEFAULT_BAND_PX)
     else:
-        band = np.full(n, float(band_px))
-    state: _FitState | None = None
-    for it in range(_ITERATIONS):
-        half = band + (_SEED_SLACK_PX if it == 0 else 0.0)
-        state = _fit_once(imgf, params, np.where(ok, half, 0.0), ok, grads, sign)
-        ok &= state.ok
-        params = np.where(ok[:, None], state.params, params)
-    assert state is not None
+        band = band_arr.copy()
+    # First pass with a wider band for the seed's error, then passes with the band re-centred on
+    # the previous estimate, repeated only for fits that still moved (elongated ellipses).
+    state = _fit_once(imgf, params, np.where(ok, band + _SEED_SLACK_PX, 0.0), ok, grads, sign)
+    ok &= state.ok
+    params = np.where(ok[:, None], state.params, params)
+    active = ok.copy()
+    for _ in range(_MAX_REFINEMENTS):
+        new = _fit_once(imgf, params, np.where(active, band, 0.0), active, grads, sign)
+        moved = np.max(np.abs(new.params[:, :4] - params[:, :4]), axis=1, initial=0.0)
+        ok &= ~active | new.ok
+        state = _merge_states(state, new, active)
+        params = np.where((active & ok)[:, None], new.params, params)
+        active &= ok & (moved > _CONVERGED_PX)
+        if not np.any(active):
+            break
+    # A fit that wandered far from its seed locked onto some other edge: not this ellipse.
+    limit = 2.0 * (band + _SEED_SLACK_PX)
+    drift = np.max(np.abs(state.params[:, :4] - seed_params[:, :4]), axis=1)
+    ok &= np.nan_to_num(drift, nan=np.inf) <= limit
     cov = _covariances(state, sigma)
     results: list[Ellipse | None] = []
     for j in range(n):
@@ -474,7 +535,7 @@ class _FitState:
         "y",
     )
 
-    def __init__(self, **kw: NDArray[np.float64] | NDArray[np.intp] | NDArray[np.bool_]) -> None:
+    def __init__(self, **kw: NDArray[Any]) -> None:
         for k, val in kw.items():
             setattr(self, k, val)
 
@@ -498,6 +559,26 @@ class _FitState:
     y: NDArray[np.float64]
 
 
+def _merge_states(old: _FitState, new: _FitState, take: NDArray[np.bool_]) -> _FitState:
+    """``new``'s results for the fits in ``take``, ``old``'s for the others."""
+    keep_old = ~take[old.fit]
+    keep_new = take[new.fit]
+    fit = np.concatenate([old.fit[keep_old], new.fit[keep_new]])
+    order = np.argsort(fit, kind="stable")
+    kw: dict[str, NDArray[Any]] = {}
+    for name in _PIXEL_FIELDS:
+        a, b = getattr(old, name), getattr(new, name)
+        kw[name] = np.concatenate([a[keep_old], b[keep_new]])[order]
+    for name in _FIT_FIELDS:
+        a, b = getattr(old, name), getattr(new, name)
+        mask = take.reshape(-1, *([1] * (a.ndim - 1)))
+        kw[name] = np.where(mask, b, a)
+    return _FitState(**kw)
+
+
+_PIXEL_FIELDS = ("P", "W", "c", "fit", "gmag", "nu", "nv", "pu", "pv", "r", "x", "y")
+_FIT_FIELDS = ("M", "ok", "params", "rms", "scale", "theta")
+
 # Index pairs of the 15 distinct entries of a symmetric 5x5 matrix.
 _IU = np.triu_indices(5)
 
@@ -519,7 +600,7 @@ def _dual_to_conics(theta: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _fit_once(
-    img: NDArray[np.float64],
+    img: NDArray[np.float32],
     params: NDArray[np.float64],
     half: NDArray[np.float64],
     ok: NDArray[np.bool_],
@@ -657,41 +738,27 @@ def _covariances(st: _FitState, sigma: float) -> NDArray[np.float64]:
     if st.fit.size == 0 or not np.isfinite(sigma):
         return out
     Vu, Vv = _sensitivities(st)
-    # The gradients are Scharr filters of the image, so d theta / d I_k = -M^-1 G_k with
-    # G = V_u * K_u + V_v * K_v (convolution). Scatter into one flat canvas holding a padded
-    # ROI per fit so neighbouring pixels of the same fit add up and different fits never mix.
-    umin = np.full(n, np.iinfo(np.intp).max)
-    vmin = np.full(n, np.iinfo(np.intp).max)
-    np.minimum.at(umin, st.fit, st.pu)
-    np.minimum.at(vmin, st.fit, st.pv)
-    umax = np.full(n, -1)
-    vmax = np.full(n, -1)
-    np.maximum.at(umax, st.fit, st.pu)
-    np.maximum.at(vmax, st.fit, st.pv)
-    present = umax >= 0
-    stride = np.where(present, umax - umin + 3, 0)
-    area = np.where(present, (vmax - vmin + 3) * stride, 0)
-    offset = np.cumsum(area) - area
-    f = st.fit
-    base = offset[f] + (st.pv - vmin[f] + 1) * stride[f] + (st.pu - umin[f] + 1)
-    keys = []
-    vals = []
-    for dv, du, w in _SCHARR_U:
-        # g_u at pixel i reads I[i + (dv, du)] with weight w/32; g_v reads I[i + (du, dv)].
-        keys.append(base + dv * stride[f] + du)
-        vals.append((w / 32.0) * Vu)
-        keys.append(base + du * stride[f] + dv)
-        vals.append((w / 32.0) * Vv)
-    key = np.concatenate(keys)
-    val = np.concatenate(vals)
-    total = int(area.sum())
-    G = np.column_stack([np.bincount(key, weights=val[:, k], minlength=total) for k in range(5)])
-    owner = np.repeat(np.arange(n), area)
-    prods = G[:, _IU[0]] * G[:, _IU[1]]
+    # The gradients are Scharr filters of the image (g = K (x) I, correlation), so the normal
+    # equations move by G_k = sum_i V_i K(k - i) per unit change of pixel k: the convolution of
+    # V with K, i.e. the correlation with the flipped (negated) Scharr kernels. Exact, including
+    # the correlation the filter puts between neighbouring gradients. One small ROI per fit.
+    Vu32, Vv32 = Vu.astype(np.float32), Vv.astype(np.float32)
+    starts, counts = _segments(st.fit, n)
     S = np.zeros((n, 5, 5))
-    s15 = _segment_sum(prods, owner, n)
-    S[:, _IU[0], _IU[1]] = s15
-    S[:, _IU[1], _IU[0]] = s15
+    present = st.ok & (counts > 0)
+    for j in np.flatnonzero(present):
+        sl = slice(starts[j], starts[j] + counts[j])
+        pu, pv = st.pu[sl], st.pv[sl]
+        u0, v0 = pu.min() - 1, pv.min() - 1
+        shape = (int(pv.max() - v0 + 2), int(pu.max() - u0 + 2), 5)
+        cu = np.zeros(shape, np.float32)
+        cv = np.zeros(shape, np.float32)
+        cu[pv - v0, pu - u0] = Vu32[sl]
+        cv[pv - v0, pu - u0] = Vv32[sl]
+        G = np.asarray(cv2.filter2D(cu, -1, _FLIPPED_U, borderType=cv2.BORDER_CONSTANT), np.float32)
+        G += cv2.filter2D(cv, -1, _FLIPPED_V, borderType=cv2.BORDER_CONSTANT)
+        Gf = G.reshape(-1, 5).astype(np.float64)
+        S[j] = Gf.T @ Gf
     good = st.ok & present
     if not np.any(good):
         return out

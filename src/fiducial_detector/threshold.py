@@ -27,6 +27,10 @@ MIN_WINDOW = 101
 #: Default small-window side, pixels: about one small fiducial across, so that thin black rings
 #: are compared with their own white surround rather than with a darker background.
 SMALL_WINDOW = 31
+#: Default side of the closing that finds thin dark lines, pixels (0 disables it), and their
+#: relative darkness below the closing.
+THIN_PX = 5
+THIN_T = 0.25
 
 
 def default_window(shape: tuple[int, ...]) -> int:
@@ -40,6 +44,8 @@ def bradley_threshold(
     *,
     window: int | tuple[int, ...] | None = None,
     t: float = DEFAULT_T,
+    thin_px: int = THIN_PX,
+    thin_t: float = THIN_T,
 ) -> NDArray[np.uint8]:
     """Binary image of the dark regions: 255 where ``grey < (1 - t) * local mean``, else 0.
 
@@ -47,6 +53,12 @@ def bradley_threshold(
     window keeps thin, blurred black rings of small fiducials (whose large-window mean is pulled
     down by the background), the large one keeps the middle of big black dots (which a small
     window entirely inside the dot would call white).
+
+    Beyond Bradley & Roth, a pixel is also black when it lies on a dark line thinner than
+    ``thin_px``: darker by ``thin_t`` than the image's morphological closing (a "black-hat"
+    test). The annulus of a small, slanted ``ring`` fiducial is such a line: blurred to a mid
+    grey between two white bands, it is darker than its surround but not than a window mean that
+    includes the background, and without this test it breaks into arcs.
 
     Parameters
     ----------
@@ -57,6 +69,10 @@ def bradley_threshold(
         ``(SMALL_WINDOW, default_window(grey.shape))``.
     t : float
         Relative darkness in ``(0, 1)`` below the local mean that makes a pixel black.
+    thin_px : int
+        Side of the square closing for thin dark lines, pixels (0 disables the test).
+    thin_t : float
+        Relative darkness in ``(0, 1)`` below the closing that makes a thin-line pixel black.
 
     Returns
     -------
@@ -87,4 +103,11 @@ def bradley_threshold(
         mean = cv2.boxFilter(grey, -1, (side | 1, side | 1), borderType=cv2.BORDER_REPLICATE)
         lim = cv2.LUT(mean, lut)
         limit = lim if limit is None else cv2.max(limit, lim)
-    return np.asarray(cv2.compare(grey, limit, cv2.CMP_LT), dtype=np.uint8)
+    black = cv2.compare(grey, limit, cv2.CMP_LT)
+    if thin_px >= 3:
+        kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (thin_px, thin_px))
+        closed = cv2.morphologyEx(grey, cv2.MORPH_CLOSE, kernel)
+        depth = cv2.subtract(closed, grey)
+        thin_lut = np.ceil(np.arange(256) * thin_t).astype(np.uint8)
+        black = cv2.bitwise_or(black, cv2.compare(depth, cv2.LUT(closed, thin_lut), cv2.CMP_GT))
+    return np.asarray(black, dtype=np.uint8)

@@ -3,7 +3,21 @@
 from __future__ import annotations
 
 from .camera import CameraModel
+from .conic_pose import circle_pose
 from .errors import CalibrationError, PoseError
+from .estimate import PoseArrays, estimate, estimate_arrays
+from .fusion import fuse, fuse_poses
 from .types import FiducialPose
 
-__all__ = ["CalibrationError", "CameraModel", "FiducialPose", "PoseError"]
+__all__ = [
+    "CalibrationError",
+    "CameraModel",
+    "FiducialPose",
+    "PoseArrays",
+    "PoseError",
+    "circle_pose",
+    "estimate",
+    "estimate_arrays",
+    "fuse",
+    "fuse_poses",
+]

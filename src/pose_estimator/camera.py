@@ -126,8 +126,15 @@ class CameraModel:
         if not self.has_distortion:
             return (px - self.K[:2, 2]) / np.diag(self.K)[:2]
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
-        out = cv2.undistortPointsIter(px.reshape(-1, 1, 2), self.K, self.D, None, None, criteria)
-        return out.reshape(-1, 2)
+        src = px.reshape(-1, 1, 2)
+        # OpenCV 4 names the variant with termination criteria undistortPointsIter; OpenCV 5
+        # folds the criteria into undistortPoints.
+        iterate = getattr(cv2, "undistortPointsIter", None)
+        if iterate is not None:
+            out = iterate(src, self.K, self.D, None, None, criteria)
+        else:
+            out = cv2.undistortPoints(src, self.K, self.D, None, np.eye(3), np.eye(3), criteria)
+        return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
     def undistort_pixels(self, uv: ArrayLike) -> NDArray[np.float64]:
         """Map distorted pixel coordinates to the pixels an ideal camera with the same ``K`` sees."""

@@ -95,7 +95,7 @@ def estimate(
             raise PoseError(f"detection of code {d.code} has no ellipses")
     if not dets:
         return []
-    obs, cov, radius = _stack(dets, 0.5 * float(diameter_mm))
+    obs, cov, radius = detections_to_arrays(dets, 0.5 * float(diameter_mm))
     result = estimate_arrays(obs, cov, radius, camera)
     poses = []
     for i, d in enumerate(dets):
@@ -152,7 +152,7 @@ class PoseArrays:
         self.chi2 = chi2
 
 
-def _stack(dets: Sequence[FiducialDetection], outer_radius_mm: float) -> tuple[F64, F64, F64]:
+def detections_to_arrays(dets: Sequence[FiducialDetection], outer_radius_mm: float) -> tuple[F64, F64, F64]:
     """Observation arrays ``(N, K, 5)``, covariances ``(N, K, 5, 5)`` and radii ``(N, K)`` (mm).
 
     Missing circles (fewer ellipses than ``K``) get NaN observations.

@@ -397,7 +397,8 @@ def test_cli_writes_pdf_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[st
     png = tmp_path / "t.png"
     args = ["targets", "--codes", "9", "--diameter-mm", "7.1", "--dpi", "600", "-o", str(png)]
     assert main(args) == 0
-    assert cv2.imread(str(png), cv2.IMREAD_UNCHANGED).shape == (336, 336)
+    back = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    assert back is not None and back.shape == (336, 336)
     out = capsys.readouterr().out
     assert "64 ring targets" in out and "dot target 9" in out
 

@@ -203,6 +203,12 @@ def test_poses_round_trip_exactly_with_detection_links() -> None:
         np.testing.assert_array_equal(a.covariance_mm2, b.covariance_mm2)
         assert a.detection is b.detection
     assert all(p.detection is None for p in records.records_to_poses(recs))
+    bad = FiducialPose(-3, poses[0].position_mm, poses[0].normal, poses[0].covariance_mm2)
+    with pytest.raises(RecordError, match=r"pose 1: code -3 outside 0\.\.4294967295"):
+        records.poses_to_records([poses[0], bad])
+    flat = FiducialPose(1, np.zeros(2), poses[0].normal, poses[0].covariance_mm2)
+    with pytest.raises(RecordError, match="malformed position"):
+        records.poses_to_records([flat])
     with pytest.raises(RecordError, match="detection_index 4 but only 2"):
         records.records_to_poses(recs, dets[:2])
 

@@ -81,7 +81,7 @@ def test_cost_equals_brute_force_and_dense_optimum(seed: int) -> None:
     }
     result = match(base, cur, **kw)
     cost = cost_matrix(base, cur, **kw)
-    unmatched = kw["gate_mm"] ** 2 / 2
+    unmatched = kw["gate_mm"] / 2
     expected = brute_force(cost, unmatched)
     assert result.total_cost == pytest.approx(expected, rel=1e-9, abs=1e-9)
     assert result.total_cost == pytest.approx(dense_optimum(cost, unmatched), rel=1e-9, abs=1e-9)
@@ -89,12 +89,18 @@ def test_cost_equals_brute_force_and_dense_optimum(seed: int) -> None:
     for d in result.displacements:
         if d.is_match:
             assert d.cost == pytest.approx(cost[d.baseline_index, d.current_index])
-    assert sorted(d.baseline_index for d in result.displacements if d.baseline_index is not None) == list(range(n))
-    assert sorted(d.current_index for d in result.displacements if d.current_index is not None) == list(range(m))
+    assert sorted(
+        d.baseline_index for d in result.displacements if d.baseline_index is not None
+    ) == list(range(n))
+    assert sorted(
+        d.current_index for d in result.displacements if d.current_index is not None
+    ) == list(range(m))
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_large_components_sparse_solver_matches_dense(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_large_components_sparse_solver_matches_dense(
+    seed: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The sparse solver used for large components gives the dense optimum."""
     mod = importlib.import_module("displacement_matcher.match")
 
@@ -105,7 +111,7 @@ def test_large_components_sparse_solver_matches_dense(seed: int, monkeypatch: py
     monkeypatch.setattr(mod, "DENSE_LIMIT", 4)
     sparse_res = match(base, cur, **kw)
     cost = cost_matrix(base, cur, **kw)
-    opt = dense_optimum(cost, kw["gate_mm"] ** 2 / 2)
+    opt = dense_optimum(cost, kw["gate_mm"] / 2)
     assert dense.total_cost == pytest.approx(opt, rel=1e-9)
     assert sparse_res.total_cost == pytest.approx(opt, rel=1e-9)
 
@@ -124,7 +130,12 @@ def test_labels_same_cross_vanished_appeared() -> None:
     ]
     r = match(base, cur, gate_mm=30.0, code_penalty_mm=10.0)
     got = {(d.baseline_index, d.current_index): d.label for d in r.displacements}
-    assert got == {(0, 0): "same_code", (1, 1): "cross_code", (2, None): "vanished", (None, 2): "appeared"}
+    assert got == {
+        (0, 0): "same_code",
+        (1, 1): "cross_code",
+        (2, None): "vanished",
+        (None, 2): "appeared",
+    }
     assert r.counts() == {"same_code": 1, "cross_code": 1, "vanished": 1, "appeared": 1}
     d0 = r.displacements[0]
     np.testing.assert_allclose(d0.displacement_mm, [0.5, 0.2, 0.3])
@@ -167,7 +178,7 @@ def test_empty_and_one_side_empty() -> None:
     assert [d.label for d in r.displacements] == ["vanished"]
     r = match([], one)
     assert [d.label for d in r.displacements] == ["appeared"]
-    assert r.total_cost == pytest.approx(r.params.gate_mm**2 / 2)
+    assert r.total_cost == pytest.approx(r.params.gate_mm / 2)
 
 
 def test_nan_and_bad_covariance_poses_are_reported_not_lost() -> None:
@@ -175,7 +186,9 @@ def test_nan_and_bad_covariance_poses_are_reported_not_lost() -> None:
     good = make_pose(1, [0, 0, 800])
     nan_pose = FiducialPose(2, np.array([np.nan, 0, 800]), np.array([0, 0, -1.0]), np.eye(3))
     bad_cov = FiducialPose(3, np.array([5.0, 0, 800]), np.array([0, 0, -1.0]), -np.eye(3))
-    inf_cov = FiducialPose(4, np.array([9.0, 0, 800]), np.array([0, 0, -1.0]), np.full((3, 3), np.inf))
+    inf_cov = FiducialPose(
+        4, np.array([9.0, 0, 800]), np.array([0, 0, -1.0]), np.full((3, 3), np.inf)
+    )
     nan_normal = FiducialPose(1, np.array([0.2, 0, 800]), np.full(3, np.nan), np.eye(3) * 0.01)
     r = match([good, nan_pose, bad_cov], [nan_normal, inf_cov])
     assert r.pairs().tolist() == [[0, 0]]

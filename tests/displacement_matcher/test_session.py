@@ -43,13 +43,22 @@ def mean_fuse(frames: Sequence[Sequence[FiducialPose]]) -> list[FiducialPose]:
     return out
 
 
+OFFSETS = np.array([[0.0, 0.0, 0.0], [9.0, 0.0, 2.0], [0.0, 9.0, -2.0], [9.0, 9.0, 0.0]])
+
+
 def scene(n: int = 40, seed: int = 1) -> np.ndarray:
-    """True fiducial centres (mm, camera frame) of a field about 800 mm away, 25 mm apart."""
+    """True fiducial centres (mm, camera frame) of ``n // 4`` units about 800 mm away.
+
+    Fiducial ``i`` is slot ``i % 4`` (code ``i % 4``, like a dolos' four codes) of unit
+    ``i // 4``; units sit 45 mm apart, their fiducials 9 mm apart on the unit.
+    """
     rng = np.random.default_rng(seed)
-    side = int(np.ceil(np.sqrt(n)))
-    g = np.array([(i % side, i // side) for i in range(n)], dtype=float) * 25.0 - 100.0
-    z = 800.0 + rng.uniform(-20, 20, n)
-    return np.column_stack([g, z])
+    n_units = n // 4
+    side = int(np.ceil(np.sqrt(n_units)))
+    centres = np.array([(u % side, u // side, 0.0) for u in range(n_units)]) * 45.0
+    centres += [-100.0, -100.0, 800.0]
+    centres[:, 2] += rng.uniform(-20, 20, n_units)
+    return (centres[:, None, :] + OFFSETS[None]).reshape(-1, 3)
 
 
 def frame(truth: np.ndarray, rng: np.random.Generator, drop: int = 0) -> list[FiducialPose]:
@@ -90,9 +99,11 @@ def make(tmp_path: Path | None = None, **kw: object) -> Session:
     return Session(cfg, fuse=mean_fuse)
 
 
-def moved(truth: np.ndarray, idx: Sequence[int], delta: Sequence[float]) -> np.ndarray:
+def moved(truth: np.ndarray, units: Sequence[int], delta: Sequence[float]) -> np.ndarray:
+    """``truth`` with the fiducials of ``units`` translated by ``delta`` (mm)."""
     out = truth.copy()
-    out[list(idx)] += np.asarray(delta, dtype=float)
+    for u in units:
+        out[4 * u : 4 * u + 4] += np.asarray(delta, dtype=float)
     return out
 
 
@@ -129,8 +140,8 @@ def test_run_cycle_reports_cumulative_and_incremental(rng: np.random.Generator) 
     feed(s, [frame(truth0, rng) for _ in range(3)], 0.0)
     assert s.baseline is not None
 
-    # Run 1: fiducials 0-3 (one unit) move 12 mm along x.
-    truth1 = moved(truth0, [0, 1, 2, 3], [12.0, 0.0, 0.0])
+    # Run 1: unit 0 moves 12 mm along x.
+    truth1 = moved(truth0, [0], [12.0, 0.0, 0.0])
     s.set_run_id("storm-A")
     s.set_run_active(True, 1.0)
     assert s.phase == Phase.RUN_ACTIVE
@@ -139,7 +150,7 @@ def test_run_cycle_reports_cumulative_and_incremental(rng: np.random.Generator) 
     s.set_run_active(False, 2.0)
     assert s.phase == Phase.SETTLING
     # Still wobbling for two frames, then settled.
-    wobble = [frame(moved(truth1, [5], [2.0 * k, 0, 0]), rng) for k in range(1, 3)]
+    wobble = [frame(moved(truth1, [5], [3.0 * k, 0, 0]), rng) for k in range(1, 3)]
     assert not of_type(feed(s, wobble, 2.1), RunCompleted)
     (done,) = of_type(feed(s, [frame(truth1, rng) for _ in range(3)], 3.0), RunCompleted)
     run = done.run
@@ -153,8 +164,8 @@ def test_run_cycle_reports_cumulative_and_incremental(rng: np.random.Generator) 
     assert sum(m.kind == "arrow" for m in run.markers) == len(truth0)
     assert len(run.rows) == len(run.report["fiducials"])
 
-    # Run 2 (no id announced): fiducial 10 moves 6 mm along y.
-    truth2 = moved(truth1, [10], [0.0, 6.0, 0.0])
+    # Run 2 (no id announced): unit 2 moves 6 mm along y.
+    truth2 = moved(truth1, [2], [0.0, 6.0, 0.0])
     s.set_run_active(True, 5.0)
     s.set_run_active(False, 6.0)
     (done2,) = of_type(feed(s, [frame(truth2, rng) for _ in range(3)], 6.1), RunCompleted)
@@ -162,17 +173,18 @@ def test_run_cycle_reports_cumulative_and_incremental(rng: np.random.Generator) 
     assert run2.run_id == "run-002"
     cum = disp_by_before(run2.report, truth0)
     assert np.linalg.norm(cum[0] - [12.0, 0, 0]) < 0.5  # cumulative keeps run 1's motion
-    assert np.linalg.norm(cum[10] - [0, 6.0, 0]) < 0.5
+    assert np.linalg.norm(cum[9] - [0, 6.0, 0]) < 0.5
     inc = disp_by_before(run2.report["incremental"], truth1)
     assert np.linalg.norm(inc[0]) < 0.5  # incremental: unit 0 did not move in run 2
-    assert np.linalg.norm(inc[10] - [0, 6.0, 0]) < 0.5
+    assert np.linalg.norm(inc[9] - [0, 6.0, 0]) < 0.5
+    assert run2.report["incremental"]["summary"]["moved_units"] == 1
 
 
 def test_frames_stamped_before_the_stop_are_not_used(rng: np.random.Generator) -> None:
     truth0 = scene()
     s = make(baseline_frames=2, settle_frames=2)
     feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
-    truth1 = moved(truth0, [7], [0.0, 0.0, 9.0])
+    truth1 = moved(truth0, [1], [0.0, 0.0, 9.0])
     s.set_run_active(True, 10.0)
     s.set_run_active(False, 20.0)
     # Frames still in the pipeline when the stop arrived: stamped before it, scene mid-run.
@@ -189,7 +201,7 @@ def test_settle_timeout_reports_unsettled(rng: np.random.Generator) -> None:
     feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
     s.set_run_active(True, 1.0)
     s.set_run_active(False, 2.0)
-    creeping = [frame(truth0 + np.array([1.0 * k, 0, 0]), rng) for k in range(1, 7)]
+    creeping = [frame(truth0 + np.array([2.0 * k, 0, 0]), rng) for k in range(1, 7)]
     events = feed(s, creeping, 3.0)
     (done,) = of_type(events, RunCompleted)
     assert done.run.report["settled"] is False
@@ -223,7 +235,7 @@ def test_state_survives_a_restart(tmp_path: Path, rng: np.random.Generator) -> N
     truth0 = scene()
     s = make(tmp_path, baseline_frames=2, settle_frames=2)
     feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
-    truth1 = moved(truth0, [3], [5.0, 0, 0])
+    truth1 = moved(truth0, [0], [5.0, 0, 0])
     s.set_run_id("R1")
     s.set_run_active(True, 1.0)
     s.set_run_active(False, 2.0)
@@ -244,7 +256,7 @@ def test_state_survives_a_restart(tmp_path: Path, rng: np.random.Generator) -> N
     b = np.array([p.position_mm for p in r.baseline.poses])
     assert np.array_equal(a, b)
     assert [x.run_id for x in r.runs] == ["R1"]
-    truth2 = moved(truth1, [3], [0.0, 4.0, 0])
+    truth2 = moved(truth1, [0], [0.0, 4.0, 0])
     r.set_run_active(True, 3.0)
     r.set_run_active(False, 4.0)
     (done,) = of_type(feed(r, [frame(truth2, rng) for _ in range(2)], 4.5), RunCompleted)
@@ -279,7 +291,7 @@ def test_frames_agree(rng: np.random.Generator) -> None:
     truth = scene()
     a, b = frame(truth, rng), frame(truth, rng)
     assert frames_agree(a, b, 0.5, 0.9)
-    assert not frames_agree(a, frame(truth + np.array([1.0, 0, 0]), rng), 0.5, 0.9)
+    assert not frames_agree(a, frame(truth + np.array([1.5, 0, 0]), rng), 0.5, 0.9)
     # A few fiducials hidden in one frame (a passing glint) still agree ...
     assert frames_agree(a, frame(truth, rng, drop=2), 0.5, 0.9)
     # ... but half the scene hidden does not.

@@ -72,9 +72,12 @@ def synthetic_detection(
     ellipses = []
     for circle, conic in zip(design.circles, truth.conics, strict=True):
         p = true_ellipse_params(camera, conic)
-        cov_s = edge_fit_covariance(p, sigma_px)
+        # Noise-free ellipses still carry a (nominal) covariance, as a real fit would.
+        cov_s = edge_fit_covariance(p, max(sigma_px, 0.01))
         q = p + rng.multivariate_normal(np.zeros(5), cov_s) if sigma_px > 0 else p
         u, v, a, b, ang = axes_from_params(q)
+        # An exact circle has no axis angle; a real fit never reports exactly a == b.
+        a = max(a, b + 1e-7 * b)
         J = axes_to_params_jacobian(a, b, ang)
         Jinv = np.linalg.inv(J)
         cov = Jinv @ cov_s @ Jinv.T

@@ -1,0 +1,242 @@
+"""Centre precision of the sub-pixel ellipse fit, beside OpenCV's ``fitEllipse`` on contours.
+
+For every design, fiducial size (outer diameter at zero slant), degradation (blur, noise) and
+slant, one fiducial geometry (random sub-pixel position, tilt, spin and code, fixed per design,
+size and slant) is rendered with :mod:`armourcam.render` under fresh noise for each realisation
+(as in the paper's section 4.1), the pose circle is fitted, and the fitted centre is compared with
+
+- the centre of the true image ellipse (what an ellipse fit estimates), and
+- the true projection of the circle's centre (what the pose estimator finally wants; the
+  difference is the perspective offset, which the pose estimator corrects, not the fit).
+
+Both fits start from the same component boundary: the contour of the thresholded pose circle
+(threshold halfway between paper white and toner black). The baseline fits that contour with
+``cv2.fitEllipse``; ours uses the contour as the seed of the dual-conic gradient fit
+(:func:`fiducial_detector.ellipse.fit_ellipse`).
+
+Per row, the table gives the worst case over slants of: the standard deviation of the centre over
+the noise realisations (max of the u and v std), the bias (norm of the mean error), and the ratio
+of the empirical std to the std predicted by the fit's covariance (1.0 = honest).
+
+Run: ``.venv/bin/python -m benchmarks.detector_precision [--reps N] [--quick]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import zlib
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from armourcam.render import (
+    BACKGROUND,
+    BLACK,
+    WHITE,
+    Patch,
+    RenderedScene,
+    Target,
+    render,
+    rotation_from_slant_tilt,
+)
+from fiducial_detector.design import get_design
+from fiducial_detector.ellipse import ellipse_from_conic, fit_ellipse
+from pose_estimator.camera import CameraModel
+
+FOCAL_PX = 2000.0
+DIAMETER_MM = 7.1
+SIZES = (120, 60, 45, 35, 25)
+DEGRADATIONS = ((0.5, 0.01), (0.5, 0.02), (0.7, 0.01), (0.7, 0.02))
+SLANTS = (0.0, 35.0, 70.0)
+DESIGNS = ("dot", "ring")
+
+
+@dataclass
+class Row:
+    """Worst case over slants for one (design, size, blur, noise)."""
+
+    ours_std: float
+    ours_bias: float
+    ours_bias_proj: float
+    ours_ratio: float
+    ours_fail: int
+    cv_std: float
+    cv_bias: float
+    cv_fail: int
+
+
+def _backdrop(z_mm: float) -> Patch:
+    # A plain backdrop behind the fiducial, at the scene background level. (Work-around: the
+    # renderer currently turns edge pixels of a patch drawn over an empty canvas into background.)
+    level = (BACKGROUND - BLACK) / (WHITE - BLACK)
+    return Patch(
+        np.diag([1.0, -1.0, -1.0]),
+        np.array([0.0, 0.0, 1.5 * z_mm]),
+        1e5,
+        lambda x, y: np.full(np.shape(x), level),
+    )
+
+
+def render_single(
+    design: str,
+    size_px: float,
+    slant_deg: float,
+    blur: float,
+    noise: float,
+    seed: int,
+    noise_seed: int,
+) -> RenderedScene:
+    """One fiducial of outer diameter ``size_px`` (at zero slant).
+
+    ``seed`` draws the geometry (sub-pixel position, tilt, spin, code), ``noise_seed`` the noise.
+    """
+    rng = np.random.default_rng(seed)
+    z = FOCAL_PX * DIAMETER_MM / size_px
+    n = int(1.5 * size_px) + 24
+    cam = CameraModel.ideal(n, n, FOCAL_PX, center=(n / 2 + rng.uniform(-1, 1), n / 2))
+    tilt = rng.uniform(0, np.pi)
+    spin = rng.uniform(0, 2 * np.pi)
+    R = rotation_from_slant_tilt(np.radians(slant_deg), tilt, spin)
+    target = Target(int(rng.integers(0, 64)), design, DIAMETER_MM, R, np.array([0.0, 0.0, z]))
+    return render(
+        cam,
+        [target],
+        clutter=[_backdrop(z)],
+        blur_sigma=blur,
+        noise=noise,
+        rng=np.random.default_rng(noise_seed),
+    )
+
+
+def contour_of(
+    image: NDArray[np.uint8], conic: NDArray[np.float64], dark_inside: bool
+) -> NDArray[np.float64] | None:
+    """The thresholded component boundary nearest the true ellipse, as (N, 2) points, or None."""
+    u, v, a, b, _ = ellipse_from_conic(conic)
+    level = 0.5 * (WHITE + BLACK) * 255.0
+    mask = (image < level) if dark_inside else (image >= level)
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    best, best_cost = None, np.inf
+    for c in contours:
+        if len(c) < 6:
+            continue
+        pts = c.reshape(-1, 2).astype(np.float64)
+        centre = pts.mean(axis=0)
+        extent = np.sqrt(np.mean(np.sum((pts - centre) ** 2, axis=1)))
+        cost = np.hypot(*(centre - (u, v))) + abs(extent - np.sqrt(0.5 * (a * a + b * b)))
+        if cost < best_cost:
+            best, best_cost = pts, cost
+    if best is None or best_cost > 0.5 * b + 1.0:
+        return None
+    return best
+
+
+def run_config(
+    design: str, size: float, blur: float, noise: float, slant: float, reps: int
+) -> tuple[NDArray, NDArray, NDArray, NDArray, int, int]:
+    """Centre errors of ours (vs ellipse, vs projection), predicted std, and baseline errors."""
+    circle = get_design(design).pose_circle
+    ours, ours_proj, pred, base = [], [], [], []
+    fail_ours = fail_cv = 0
+    for rep in range(reps):
+        geometry = zlib.crc32(repr((design, size, slant)).encode())
+        scene = render_single(design, size, slant, blur, noise, geometry, 1000 + rep)
+        truth = scene.truth[0]
+        u, v, _, _, _ = ellipse_from_conic(truth.conics[0])
+        pts = contour_of(np.asarray(scene.image, np.uint8), truth.conics[0], circle.dark_inside)
+        if pts is None:
+            fail_ours += 1
+            fail_cv += 1
+            continue
+        (cu, cv_), _, _ = cv2.fitEllipse(pts.astype(np.float32))
+        base.append((cu - u, cv_ - v))
+        e = fit_ellipse(scene.image, pts, radius=circle.radius, dark_inside=circle.dark_inside)
+        if e is None:
+            fail_ours += 1
+            continue
+        ours.append((e.center_px[0] - u, e.center_px[1] - v))
+        ours_proj.append(np.subtract(e.center_px, truth.center_px))
+        pred.append(np.sqrt(np.diag(e.covariance)[:2]))
+    return (
+        np.array(ours).reshape(-1, 2),
+        np.array(ours_proj).reshape(-1, 2),
+        np.array(pred).reshape(-1, 2),
+        np.array(base).reshape(-1, 2),
+        fail_ours,
+        fail_cv,
+    )
+
+
+def _std(err: NDArray) -> float:
+    return float(np.max(err.std(axis=0, ddof=1))) if len(err) > 2 else float("nan")
+
+
+def _bias(err: NDArray) -> float:
+    return float(np.hypot(*err.mean(axis=0))) if len(err) else float("nan")
+
+
+def summarise(design: str, size: float, blur: float, noise: float, reps: int) -> Row:
+    """Worst case over :data:`SLANTS`."""
+    row = Row(0.0, 0.0, 0.0, 0.0, 0, 0.0, 0.0, 0)
+    for slant in SLANTS:
+        ours, proj, pred, base, fo, fc = run_config(design, size, blur, noise, slant, reps)
+        row.ours_std = max(row.ours_std, _std(ours))
+        row.ours_bias = max(row.ours_bias, _bias(ours))
+        row.ours_bias_proj = max(row.ours_bias_proj, _bias(proj))
+        if len(ours) > 2:
+            ratio = ours.std(axis=0, ddof=1) / pred.mean(axis=0)
+            # Keep the ratio farthest from 1 (either way).
+            worst = ratio[np.argmax(np.abs(np.log(ratio)))]
+            if abs(np.log(worst)) > abs(np.log(row.ours_ratio or 1.0)):
+                row.ours_ratio = float(worst)
+        row.ours_fail += fo
+        row.cv_std = max(row.cv_std, _std(base))
+        row.cv_bias = max(row.cv_bias, _bias(base))
+        row.cv_fail += fc
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print the centre-precision table."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--reps", type=int, default=20, help="noise realisations per slant")
+    parser.add_argument("--quick", action="store_true", help="60 px only, 10 realisations")
+    args = parser.parse_args(argv)
+    sizes = (60,) if args.quick else SIZES
+    reps = 10 if args.quick else args.reps
+    print(
+        f"Centre precision of the pose-circle fit, worst case over slants {SLANTS} deg, "
+        f"{reps} noise realisations each (pixels)."
+    )
+    print("std = max(std_u, std_v); bias = |mean error| vs the true ellipse centre;")
+    print("bias(proj) = vs the projected circle centre (perspective offset, corrected in pose);")
+    print("std/pred = empirical std / std predicted by the covariance (1 = honest).\n")
+    header = (
+        f"{'design':6} {'size':>4} {'blur':>4} {'noise':>5} | {'ours std':>8} {'bias':>7} "
+        f"{'bias(proj)':>10} {'std/pred':>8} {'fail':>4} | {'cv2 std':>8} {'bias':>7} {'fail':>4}"
+    )
+    print(header)
+    print("-" * len(header))
+    t0 = time.perf_counter()
+    for design in DESIGNS:
+        for size in sizes:
+            for blur, noise in DEGRADATIONS:
+                r = summarise(design, size, blur, noise, reps)
+                print(
+                    f"{design:6} {size:4d} {blur:4.1f} {100 * noise:4.0f}% | "
+                    f"{r.ours_std:8.4f} {r.ours_bias:7.4f} {r.ours_bias_proj:10.4f} "
+                    f"{r.ours_ratio:8.2f} {r.ours_fail:4d} | "
+                    f"{r.cv_std:8.4f} {r.cv_bias:7.4f} {r.cv_fail:4d}",
+                    flush=True,
+                )
+    print(f"\n({time.perf_counter() - t0:.0f} s)")
+    print("Target (issue 2): std <= 0.02 px at 60 px.")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,125 @@
+"""``armourcam compare``: measure unit displacement between before and after images.
+
+Each state may be given as several images of the static scene; their poses are fused. Writes the
+report (``report.json``, ``fiducials.csv``, ``units.csv``, ``overlay.png``, ``plot.png``) into
+``--out`` and prints the damage summary, or with ``--json`` the report itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+DEFAULT_DN_MM = 20.5  # a 38 mm dolos (Dn ~ 0.54 H)
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``compare`` subcommand."""
+    p = subparsers.add_parser(
+        "compare",
+        help="displacement of armour units between before and after images",
+        description=(
+            "Detect fiducials in the before and after images (several per state are fused), "
+            "match them globally, measure per-unit motion and count the damage. Thresholds are "
+            "printed with the numbers."
+        ),
+    )
+    p.add_argument("before", nargs="+", metavar="BEFORE", help="baseline image(s)")
+    p.add_argument("--after", nargs="+", required=True, metavar="AFTER", help="after image(s)")
+    p.add_argument("--camera", required=True, help="camera_calibration YAML file")
+    p.add_argument("--diameter-mm", type=float, default=7.1, help="printed diameter (7.1)")
+    p.add_argument("--out", required=True, help="output directory of the report")
+    p.add_argument("--units", help="unit map YAML (explicit units or a repeated template)")
+    p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
+    p.add_argument("--design", choices=("any", "ring", "dot"), default="any")
+    p.add_argument("--dn-mm", type=float, default=DEFAULT_DN_MM, help="nominal unit size Dn, mm")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--displaced-dn", type=float, help="displacement threshold in Dn (default 1)")
+    g.add_argument("--displaced-mm", type=float, help="displacement threshold in mm")
+    p.add_argument("--moved-mm", type=float, default=2.0, help="movement threshold, mm (2)")
+    p.add_argument("--section-width-mm", type=float, help="section width along the crest (N_od)")
+    p.add_argument("--gate-mm", type=float, default=None, help="matching gate, mm")
+    p.add_argument("--code-penalty-mm", type=float, default=None, help="cross-code penalty, mm")
+    p.add_argument("--no-cross-code", action="store_true", help="forbid cross-code matches")
+    p.set_defaults(func=run)
+
+
+def _read(path: str) -> Any:
+    import cv2
+
+    if not Path(path).is_file():
+        raise OSError(f"image not found: {path}")
+    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"cannot decode image {path}")
+    return img
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the comparison, write the report, print the summary or the JSON."""
+    from displacement_matcher.compare import compare_poses, poses_from_images
+    from displacement_matcher.damage import thresholds
+    from displacement_matcher.report import report_dict, write_report
+    from displacement_matcher.units import load_unit_map
+    from pose_estimator.camera import CameraModel
+
+    camera = CameraModel.from_yaml(args.camera)
+    unit_map = load_unit_map(args.units) if args.units else None
+    limits = thresholds(
+        args.dn_mm,
+        displaced_mm=args.displaced_mm,
+        displaced_dn=args.displaced_dn,
+        moved_mm=args.moved_mm,
+    )
+    before_imgs = [_read(p) for p in args.before]
+    after_imgs = [_read(p) for p in args.after]
+    before = poses_from_images(before_imgs, camera, args.diameter_mm, design=args.design)
+    after = poses_from_images(after_imgs, camera, args.diameter_mm, design=args.design)
+    kw: dict[str, float] = {}
+    if args.gate_mm is not None:
+        kw["gate_mm"] = args.gate_mm
+    if args.code_penalty_mm is not None:
+        kw["code_penalty_mm"] = args.code_penalty_mm
+    if args.no_cross_code:
+        kw["code_penalty_mm"] = math.inf
+    cmp = compare_poses(
+        before, after, limits, unit_map=unit_map, section_width_mm=args.section_width_mm, **kw
+    )
+    extra = {
+        "inputs": {
+            "before": list(args.before),
+            "after": list(args.after),
+            "camera": args.camera,
+            "diameter_mm": args.diameter_mm,
+            "before_fiducials": len(before),
+            "after_fiducials": len(after),
+        }
+    }
+    write_report(
+        args.out,
+        cmp.result,
+        cmp.units,
+        cmp.summary,
+        camera=camera,
+        after_image=after_imgs[0],
+        unassigned=cmp.unassigned,
+        extra=extra,
+    )
+    if args.json:
+        rep = report_dict(cmp.result, cmp.units, cmp.summary, unassigned=cmp.unassigned)
+        rep.update(extra)
+        json.dump(rep, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        c = cmp.result.counts()
+        print(
+            f"fiducials: before {len(before)}, after {len(after)}; same-code {c['same_code']}, "
+            f"cross-code {c['cross_code']}, vanished {c['vanished']}, appeared {c['appeared']}"
+        )
+        print(cmp.summary.describe())
+        print(f"report written to {args.out}")
+    return 0

@@ -1,0 +1,124 @@
+"""``armourcam detect``: find fiducials in image files and print them as a table or JSON.
+
+``armourcam detect IMAGE... [--design ring|dot|any] [--json]``. Each file is processed on its
+own: a file that cannot be read (missing, empty, not an image, truncated) gets a one-line error
+and the others are still processed; the exit status is 1 when any file failed.
+
+JSON output: ``{"images": [{"path", "error", "detections": [...]}]}`` with one record per
+detection built by :func:`detection_record` (extend that function to add fields, e.g. a pose).
+Pixel coordinates ``(u, v)``: pixel centres at integer coordinates (OpenCV's convention).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+import numpy as np
+
+from fiducial_detector import DetectorError, detect
+from fiducial_detector.types import Ellipse, FiducialDetection
+
+from ..imageio import ImageReadError, read_image
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``detect`` subcommand."""
+    parser = subparsers.add_parser(
+        "detect",
+        help="find fiducials in image files",
+        description=(
+            "Detect armourcam fiducials in PNG, JPEG or TIFF images (8 or 16 bit, grey or colour) "
+            "and print code, centre and fitted ellipses of each. Pixel centres are at integer "
+            "coordinates."
+        ),
+    )
+    parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files")
+    parser.add_argument(
+        "--design",
+        choices=("any", "ring", "dot"),
+        default="any",
+        help="fiducial design to look for (default: any, both designs in one image)",
+    )
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.set_defaults(func=run)
+
+
+def ellipse_record(ellipse: Ellipse) -> dict[str, Any]:
+    """JSON record of one fitted ellipse (pixels, radians; ``radius`` = nominal printed radius as
+    a fraction of the outer radius; ``sigma_center_px`` = standard deviations of u and v)."""
+    cov = np.asarray(ellipse.covariance, dtype=np.float64)
+    sigma = np.sqrt(np.maximum(np.diag(cov)[:2], 0.0)) if cov.shape == (5, 5) else np.zeros(2)
+    return {
+        "center_px": [float(ellipse.center_px[0]), float(ellipse.center_px[1])],
+        "semi_major": float(ellipse.semi_major),
+        "semi_minor": float(ellipse.semi_minor),
+        "angle": float(ellipse.angle),
+        "radius": float(ellipse.radius),
+        "sigma_center_px": [float(sigma[0]), float(sigma[1])],
+    }
+
+
+def detection_record(detection: FiducialDetection, **_context: Any) -> dict[str, Any]:
+    """JSON record of one detection: the single place that decides the per-detection fields.
+
+    Keyword arguments are context for extensions (a camera, the printed diameter) and are
+    ignored here.
+    """
+    return {
+        "code": int(detection.code),
+        "center_px": [float(detection.center_px[0]), float(detection.center_px[1])],
+        "hamming": int(detection.hamming),
+        "design": detection.design,
+        "contrast": float(detection.contrast),
+        "rotation": float(detection.rotation),
+        "ellipses": [ellipse_record(e) for e in detection.ellipses],
+    }
+
+
+def detect_file(path: str, design: str, **context: Any) -> dict[str, Any]:
+    """Read and process one file; errors become the record's one-line ``error``."""
+    try:
+        image = read_image(path)
+        found = detect(image, design=design)  # type: ignore[arg-type]
+    except (ImageReadError, DetectorError) as err:
+        message = str(err)
+        if not message.startswith(path):
+            message = f"{path}: {message}"
+        return {"path": path, "error": message, "detections": []}
+    records = [detection_record(d, **context) for d in found]
+    return {"path": path, "error": None, "detections": records}
+
+
+def _print_table(results: list[dict[str, Any]]) -> None:
+    for res in results:
+        if res["error"] is not None:
+            continue
+        dets = res["detections"]
+        print(f"{res['path']}: {len(dets)} fiducial{'s' if len(dets) != 1 else ''}")
+        if not dets:
+            continue
+        print("  code  design         u          v  ham  contrast  semi-axes (px)")
+        for d in dets:
+            pose = d["ellipses"][0]
+            print(
+                f"  {d['code']:>4}  {d['design']:>6}  {d['center_px'][0]:9.3f}  "
+                f"{d['center_px'][1]:9.3f}  {d['hamming']:>3}  {d['contrast']:8.3f}  "
+                f"{pose['semi_major']:.2f} x {pose['semi_minor']:.2f}"
+            )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Process every image; exit status 1 if any could not be processed."""
+    results = [detect_file(path, args.design) for path in args.images]
+    failed = [r for r in results if r["error"] is not None]
+    if args.json:
+        json.dump({"images": results}, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        _print_table(results)
+    for res in failed:
+        print(f"armourcam detect: error: {res['error']}", file=sys.stderr)
+    return 1 if failed else 0

@@ -1,0 +1,91 @@
+"""Before/after comparison end to end: images -> fused poses -> matching -> units -> damage.
+
+The pure pipeline behind ``armourcam compare`` and the offline tools: each state may be several
+images of the static scene, whose per-image poses are fused into one pose per fiducial
+(:func:`pose_estimator.fuse`) before the unit-aware matching
+(:func:`displacement_matcher.units.match_units`) and the damage count
+(:func:`displacement_matcher.damage.assess`). Camera frame, millimetres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pose_estimator.camera import CameraModel
+from pose_estimator.types import FiducialPose
+
+from .damage import assess
+from .types import DamageSummary, DamageThresholds, MatchResult, UnitMotion
+from .units import UnitMap, match_units
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Assessment:
+    """Everything measured between a baseline and a current state.
+
+    Attributes
+    ----------
+    result : MatchResult
+    units : tuple of UnitMotion
+        With ``status`` filled in.
+    summary : DamageSummary
+    unassigned : tuple of int
+        Baseline fiducials that belong to no unit.
+    n_frames : (int, int)
+        Images fused for the baseline and the current state.
+    """
+
+    result: MatchResult
+    units: tuple[UnitMotion, ...]
+    summary: DamageSummary
+    unassigned: tuple[int, ...]
+    n_frames: tuple[int, int] = (1, 1)
+
+
+def poses_from_images(
+    images: Sequence[NDArray[np.generic]],
+    camera: CameraModel,
+    diameter_mm: float,
+    *,
+    design: str = "any",
+) -> list[FiducialPose]:
+    """Detect, estimate and (for several images of one static state) fuse fiducial poses.
+
+    Raises
+    ------
+    ValueError
+        (``DetectorError``, ``PoseError``, ``CalibrationError``) for an image that does not fit
+        the camera or cannot be read as an image.
+    """
+    from fiducial_detector.detect import detect
+    from pose_estimator.estimate import estimate
+    from pose_estimator.fusion import fuse
+
+    frames = []
+    for image in images:
+        h, w = image.shape[:2]
+        camera.check_image_size(w, h)
+        frames.append(estimate(detect(image, design=design), camera, diameter_mm))  # type: ignore[arg-type]
+    if len(frames) == 1:
+        return list(frames[0])
+    return list(fuse(frames))
+
+
+def compare_poses(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    thresholds: DamageThresholds,
+    *,
+    unit_map: UnitMap | None = None,
+    section_width_mm: float | None = None,
+    **match_kw: Any,
+) -> Assessment:
+    """Unit-aware matching and damage count of two pose sets (see :func:`match_units`)."""
+    analysis = match_units(baseline, current, unit_map=unit_map, **match_kw)
+    units, summary = assess(analysis.units, thresholds, section_width_mm=section_width_mm)
+    return Assessment(analysis.result, units, summary, analysis.unassigned)

@@ -1,0 +1,132 @@
+"""``armourcam detect``: JSON and table output, every image format, and one-line errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from armourcam.cli import main
+from armourcam.imageio import ImageReadError, read_image
+from armourcam.render import Target, render
+from pose_estimator.camera import CameraModel
+
+FOCAL_PX = 6507.0
+
+
+@pytest.fixture(scope="module")
+def scene_image() -> np.ndarray:
+    """A ring fiducial (code 5) and a dot fiducial (code 9), 60 px, side by side."""
+    z = FOCAL_PX * 7.1 / 60
+    dx = 60 * z / FOCAL_PX
+    targets = [
+        Target(5, "ring", 7.1, position_mm=np.array([-dx, 0.0, z])),
+        Target(9, "dot", 7.1, position_mm=np.array([dx, 0.0, z])),
+    ]
+    scene = render(
+        CameraModel.ideal(300, 200, FOCAL_PX),
+        targets,
+        blur_sigma=0.5,
+        noise=0.01,
+        rng=np.random.default_rng(0),
+    )
+    return scene.image
+
+
+def _run(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    status = main(["detect", *args])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def test_json_output(tmp_path: Path, scene_image: np.ndarray, capsys) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "scene.png"
+    cv2.imwrite(str(path), scene_image)
+    status, out, _ = _run(capsys, str(path), "--json")
+    assert status == 0
+    doc = json.loads(out)
+    (image,) = doc["images"]
+    assert image["path"] == str(path) and image["error"] is None
+    dets = sorted(image["detections"], key=lambda d: d["center_px"][0])
+    assert [(d["code"], d["design"]) for d in dets] == [(5, "ring"), (9, "dot")]
+    assert np.allclose(dets[0]["center_px"], [89.5, 99.5], atol=0.05)
+    assert np.allclose(dets[1]["center_px"], [209.5, 99.5], atol=0.05)
+    ring = dets[0]
+    assert [e["radius"] for e in ring["ellipses"]] == [1.0, 0.8, 0.24]
+    for key in ("center_px", "semi_major", "semi_minor", "angle", "radius", "sigma_center_px"):
+        assert key in ring["ellipses"][0]
+    assert ring["hamming"] == 0 and 0.5 < ring["contrast"] < 0.9
+    _, out, _ = _run(capsys, str(path), "--json", "--design", "dot")
+    assert [d["code"] for d in json.loads(out)["images"][0]["detections"]] == [9]
+
+
+@pytest.mark.parametrize(
+    ("name", "convert"),
+    [
+        ("grey.jpg", lambda im: im),
+        ("colour.jpg", lambda im: cv2.cvtColor(im, cv2.COLOR_GRAY2BGR)),
+        ("grey16.png", lambda im: im.astype(np.uint16) * 257),
+        ("colour16.png", lambda im: cv2.cvtColor(im, cv2.COLOR_GRAY2BGR).astype(np.uint16) * 257),
+        ("rgba.png", lambda im: cv2.cvtColor(im, cv2.COLOR_GRAY2BGRA)),
+        ("grey.tif", lambda im: im),
+        ("grey16.tiff", lambda im: im.astype(np.uint16) * 257),
+    ],
+)
+def test_formats(tmp_path: Path, scene_image: np.ndarray, name: str, convert, capsys) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / name
+    assert cv2.imwrite(str(path), convert(scene_image))
+    status, out, _ = _run(capsys, str(path), "--json")
+    assert status == 0
+    dets = json.loads(out)["images"][0]["detections"]
+    assert sorted(d["code"] for d in dets) == [5, 9]
+
+
+def test_bad_files_get_one_line_errors(tmp_path: Path, scene_image: np.ndarray, capsys) -> None:  # type: ignore[no-untyped-def]
+    good = tmp_path / "good.png"
+    cv2.imwrite(str(good), scene_image)
+    png = good.read_bytes()
+    ok, jpg = cv2.imencode(".jpg", scene_image)
+    assert ok
+    files = {
+        "text.png": b"this is not an image\n",
+        "empty.jpg": b"",
+        "cut.png": png[: len(png) // 2],
+        "cut.jpg": jpg.tobytes()[: jpg.size // 2],
+        "garbage.png": png[:8] + bytes(200) + b"IEND\xaeB`\x82",
+    }
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    paths = [str(tmp_path / n) for n in files] + [str(tmp_path / "missing.tif"), str(good)]
+    status, out, err = _run(capsys, *paths, "--json")
+    assert status == 1
+    images = json.loads(out)["images"]
+    assert [im["path"] for im in images] == paths
+    expected = {
+        "text.png": "not a PNG, JPEG or TIFF",
+        "empty.jpg": "empty file",
+        "cut.png": "truncated PNG",
+        "cut.jpg": "truncated JPEG",
+        "garbage.png": "corrupt PNG",
+        "missing.tif": "no such file",
+    }
+    for im in images[:-1]:
+        name = Path(im["path"]).name
+        assert expected[name] in im["error"] and im["path"] in im["error"]
+        assert "\n" not in im["error"] and im["detections"] == []
+    assert images[-1]["error"] is None and len(images[-1]["detections"]) == 2
+    assert len(err.strip().splitlines()) == len(expected)
+    # The table output processes the good file too and reports the others on stderr.
+    status, out, err = _run(capsys, str(tmp_path / "text.png"), str(good))
+    assert status == 1 and "good.png: 2 fiducials" in out and "text.png" in err
+
+
+def test_read_image_keeps_depth_and_channels(tmp_path: Path, scene_image: np.ndarray) -> None:
+    path = tmp_path / "x16.png"
+    cv2.imwrite(str(path), scene_image.astype(np.uint16) * 257)
+    im = read_image(path)
+    assert im.dtype == np.uint16 and im.shape == scene_image.shape
+    with pytest.raises(ImageReadError, match="is a directory"):
+        read_image(tmp_path)

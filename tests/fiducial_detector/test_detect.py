@@ -1,0 +1,236 @@
+"""End-to-end detection against rendered ground truth: recall, codes, centres, clutter, inputs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from armourcam.render import Patch, RenderedScene, Target, render, rotation_from_slant_tilt
+from fiducial_detector import DetectorError, FiducialDetection, detect
+from fiducial_detector.design import get_design
+from fiducial_detector.ellipse import ellipse_from_conic
+from pose_estimator.camera import CameraModel
+
+FOCAL_PX = 6507.0
+DIAMETER_MM = 7.1
+FIXTURES = Path(__file__).parents[2] / ".." / "shared" / "fixtures"
+
+
+def _one(
+    design: str,
+    size: float,
+    slant_deg: float,
+    seed: int,
+    *,
+    blur: float = 0.7,
+    noise: float = 0.02,
+    code: int | None = None,
+) -> RenderedScene:
+    """One fiducial of ``size`` px (outer diameter at zero slant) on a small image."""
+    rng = np.random.default_rng(seed)
+    z = FOCAL_PX * DIAMETER_MM / size
+    side = int(1.6 * size) + 24
+    camera = CameraModel.ideal(side, side, FOCAL_PX)
+    rotation = rotation_from_slant_tilt(
+        np.radians(slant_deg), rng.uniform(0, np.pi), rng.uniform(0, 2 * np.pi)
+    )
+    off = rng.uniform(-0.5, 0.5, 2) * z / FOCAL_PX
+    target = Target(
+        int(rng.integers(66)) if code is None else code,
+        design,
+        DIAMETER_MM,
+        rotation,
+        np.array([*off, z]),
+    )
+    return render(camera, [target], blur_sigma=blur, noise=noise, rng=rng)
+
+
+def _matches(found: list[FiducialDetection], scene: RenderedScene) -> list[FiducialDetection]:
+    truth = scene.truth[0]
+    return [
+        d
+        for d in found
+        if d.code == truth.code
+        and d.design == truth.design
+        and np.hypot(*(np.asarray(d.center_px) - truth.center_px)) < 2.0
+    ]
+
+
+@pytest.mark.parametrize("design", ["ring", "dot"])
+@pytest.mark.parametrize(("size", "slant"), [(120, 0), (120, 65), (60, 45), (45, 60), (35, 30)])
+def test_recall_and_codes(design: str, size: float, slant: float) -> None:
+    """Every fiducial is found with its true code and design, and nothing else is reported."""
+    for seed in range(3):
+        scene = _one(design, size, slant, 1000 * size + 10 * slant + seed)
+        found = detect(scene.image)
+        assert len(_matches(found, scene)) == 1, (seed, found)
+        assert len(found) == 1
+
+
+@pytest.mark.parametrize("design", ["ring", "dot"])
+def test_ellipses_and_centre_against_truth(design: str) -> None:
+    """Every printed circle is fitted, largest first, close to its true image conic."""
+    spec = get_design(design)
+    for seed in range(3):
+        scene = _one(design, 60, 40, seed, blur=0.5, noise=0.01)
+        (det,) = detect(scene.image)
+        assert [e.radius for e in det.ellipses] == [c.radius for c in spec.circles]
+        assert det.center_px == det.ellipses[0].center_px
+        for ell, conic in zip(det.ellipses, scene.truth[0].conics, strict=True):
+            u, v, a, b, _ = ellipse_from_conic(conic)
+            # The fitted ellipse centre vs the true image ellipse's centre: sub-pixel.
+            assert np.hypot(ell.center_px[0] - u, ell.center_px[1] - v) < 0.1
+            assert abs(ell.semi_major - a) < 0.6 and abs(ell.semi_minor - b) < 0.6
+            assert np.all(np.isfinite(ell.covariance))
+            assert 0 < np.sqrt(ell.covariance[0, 0]) < 0.1
+        # The pose ellipse's centre is near the true projected centre (perspective offset only).
+        assert np.hypot(*(np.asarray(det.center_px) - scene.truth[0].center_px)) < 0.3
+        assert 0.6 < det.contrast < 0.8  # rendered white 0.85 - black 0.12, blurred
+
+
+def test_rotation_fronto_parallel() -> None:
+    """``rotation`` is the image angle of the printed +x axis (the sector 15 / 0 boundary)."""
+    for spin in np.radians([0.0, 30.0, 100.0, 250.0]):
+        camera = CameraModel.ideal(120, 120, FOCAL_PX)
+        rot = rotation_from_slant_tilt(0.0, 0.0, spin)
+        scene = render(camera, [Target(7, "ring", DIAMETER_MM, rot, np.array([0, 0, 770.0]))])
+        (det,) = detect(scene.image)
+        # Printed +x maps to image direction R[:, 0] (x right, y down).
+        expected = np.arctan2(rot[1, 0], rot[0, 0])
+        err = (det.rotation - expected + np.pi) % (2 * np.pi) - np.pi
+        assert abs(err) < np.radians(4.0)
+
+
+def test_both_designs_in_one_image_and_design_filter() -> None:
+    z = FOCAL_PX * DIAMETER_MM / 50
+    camera = CameraModel.ideal(260, 120, FOCAL_PX)
+    step = 70 * z / FOCAL_PX
+    targets = [
+        Target(3, "ring", DIAMETER_MM, position_mm=np.array([-step, 0, z])),
+        Target(40, "dot", DIAMETER_MM, position_mm=np.array([step, 0, z])),
+    ]
+    scene = render(camera, targets, blur_sigma=0.5, noise=0.01, rng=np.random.default_rng(3))
+    both = detect(scene.image)
+    assert sorted((d.design, d.code) for d in both) == [("dot", 40), ("ring", 3)]
+    assert [(d.design, d.code) for d in detect(scene.image, design="ring")] == [("ring", 3)]
+    assert [(d.design, d.code) for d in detect(scene.image, design="dot")] == [("dot", 40)]
+
+
+def _clutter(camera: CameraModel, rng: np.random.Generator) -> list[Patch]:
+    """Dark blobs, plain discs, plain rings and a bullseye without code at random poses."""
+    shapes = []
+
+    def disc(x: NDArray[np.float64], y: NDArray[np.float64], r: float) -> NDArray[np.float64]:
+        return np.where(x * x + y * y < r * r, 0.0, 1.0)
+
+    def ring(x: NDArray[np.float64], y: NDArray[np.float64], r: float) -> NDArray[np.float64]:
+        rr = np.hypot(x, y)
+        return np.where((rr > 0.8 * r) & (rr < r), 0.0, 1.0)
+
+    def bull(x: NDArray[np.float64], y: NDArray[np.float64], r: float) -> NDArray[np.float64]:
+        rr = np.hypot(x, y)
+        return np.where((rr < 0.3 * r) | ((rr > 0.56 * r) & (rr < r)), 0.0, 1.0)
+
+    def blob(x: NDArray[np.float64], y: NDArray[np.float64], r: float) -> NDArray[np.float64]:
+        ang = np.arctan2(y, x)
+        edge = r * (0.8 + 0.2 * np.sin(3 * ang) * np.cos(2 * ang))
+        return np.where(np.hypot(x, y) < edge, 0.0, 1.0)
+
+    for k, f in enumerate([disc, ring, bull, blob] * 3):
+        r = rng.uniform(2.0, 5.0)
+        z = rng.uniform(400.0, 900.0)
+        u = 40 + (k % 6) * 90 + rng.uniform(-5, 5)
+        v = 60 + (k // 6) * 110 + rng.uniform(-5, 5)
+        xy = (np.array([u, v]) - camera.K[:2, 2]) / FOCAL_PX * z
+        rot = rotation_from_slant_tilt(np.radians(rng.uniform(0, 60)), rng.uniform(0, np.pi))
+
+        def refl(x: NDArray, y: NDArray, f=f, r=r) -> NDArray:  # type: ignore[no-untyped-def]
+            return f(x, y, r)
+
+        shapes.append(Patch(rot, np.array([*xy, z]), 1.3 * r, refl))
+    return shapes
+
+
+def test_clutter_is_rejected() -> None:
+    """Blobs, discs, rings and bullseyes without a code are never reported as fiducials."""
+    rng = np.random.default_rng(11)
+    camera = CameraModel.ideal(560, 240, FOCAL_PX)
+    for noise in (0.01, 0.02):
+        scene = render(camera, clutter=_clutter(camera, rng), blur_sigma=0.6, noise=noise, rng=rng)
+        assert detect(scene.image) == []
+
+
+def test_no_detections_on_real_photo() -> None:
+    photo = FIXTURES / "real_photo_aruco_tag.png"
+    image = cv2.imread(str(photo), cv2.IMREAD_UNCHANGED)
+    assert image is not None, f"missing fixture {photo}"
+    assert detect(image) == []
+    assert detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)) == []
+
+
+def test_no_detections_on_real_bag_jpeg() -> None:
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    bag = FIXTURES / "real_camera_aruco_ros1.bag"
+    images = []
+    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS1_NOETIC)) as reader:
+        conns = [c for c in reader.connections if c.msgtype == "sensor_msgs/msg/CompressedImage"]
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            buf = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+            images.append(cv2.imdecode(buf, cv2.IMREAD_COLOR))
+    assert images and all(im is not None for im in images)
+    for image in images:
+        assert detect(image) == []
+
+
+def test_input_types_give_the_same_detections() -> None:
+    scene = _one("ring", 60, 20, 5, blur=0.5, noise=0.01)
+    grey = scene.image
+    ref = [(d.code, d.design) for d in detect(grey)]
+    assert ref == [(scene.truth[0].code, "ring")]
+    variants = [
+        cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR),
+        cv2.cvtColor(grey, cv2.COLOR_GRAY2BGRA),
+        grey[:, :, None],
+        grey.astype(np.uint16) * 257,
+        grey.astype(np.float32) / 255.0,
+        grey.astype(np.float64) / 255.0,
+        np.asfortranarray(grey),
+    ]
+    for image in variants:
+        found = detect(image)
+        assert [(d.code, d.design) for d in found] == ref
+        assert np.hypot(*np.subtract(found[0].center_px, detect(grey)[0].center_px)) < 0.02
+
+
+@pytest.mark.parametrize(
+    ("image", "match"),
+    [
+        (np.zeros((4, 50, 50, 1), np.uint8), "shape"),
+        (np.zeros((50, 50, 2), np.uint8), "shape"),
+        (np.zeros((5, 50), np.uint8), "too small"),
+        (np.zeros((50, 50), bool), "dtype"),
+        (np.zeros((50, 50), np.int32), "dtype"),
+        (np.full((50, 50), 2.0), r"\[0, 1\]"),
+        (np.full((50, 50), np.nan, np.float32), "NaN"),
+    ],
+)
+def test_bad_input_raises(image: NDArray[np.generic], match: str) -> None:
+    with pytest.raises(DetectorError, match=match):
+        detect(image)
+
+
+def test_bad_parameters_raise() -> None:
+    image = np.zeros((50, 50), np.uint8)
+    with pytest.raises(DetectorError, match="design"):
+        detect(image, design="square")  # type: ignore[arg-type]
+    with pytest.raises(DetectorError, match="max_hamming"):
+        detect(image, max_hamming=2)
+    with pytest.raises(DetectorError, match="must be a numpy array"):
+        detect([[0, 1], [1, 0]])  # type: ignore[arg-type]

@@ -1,0 +1,101 @@
+"""Closed-form circle pose and conic utilities against exact projections."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from armourcam.render import Target, rotation_from_slant_tilt, target_truth
+from pose_estimator.camera import CameraModel
+from pose_estimator.conic_pose import (
+    axes_from_params,
+    axes_to_params_jacobian,
+    circle_params,
+    circle_pose,
+    conic_from_params,
+    ellipse_points,
+    fit_conics,
+    params_from_axes,
+    params_from_conic,
+)
+
+CAMERA = CameraModel.ideal(3008, 2000, 5769.0)
+
+
+def _normalised_cone(conic: np.ndarray) -> np.ndarray:
+    return CAMERA.K.T @ conic @ CAMERA.K
+
+
+@pytest.mark.parametrize("slant_deg", [0.0, 1.0, 20.0, 45.0, 70.0, 85.0])
+@pytest.mark.parametrize("position", [(0.0, 0.0, 700.0), (180.0, -120.0, 650.0), (-90.0, 60.0, 900.0)])
+def test_circle_pose_recovers_truth_as_one_of_two(
+    slant_deg: float, position: tuple[float, float, float]
+) -> None:
+    """One of the two closed-form solutions is the true centre and normal."""
+    R = rotation_from_slant_tilt(np.radians(slant_deg), tilt=0.7, spin=0.3)
+    target = Target(3, "ring", 7.1, R, np.array(position))
+    truth = target_truth(CAMERA, target)
+    if truth.normal @ truth.position_mm >= 0:
+        # At 85 deg and far off axis this tilt turns the printed face away from the camera.
+        R = rotation_from_slant_tilt(np.radians(slant_deg), tilt=0.7 + np.pi, spin=0.3)
+        target = Target(3, "ring", 7.1, R, np.array(position))
+        truth = target_truth(CAMERA, target)
+    assert truth.normal @ truth.position_mm < 0
+    centers, normals = circle_pose(_normalised_cone(truth.conics[0]), 3.55)
+    err = np.linalg.norm(centers - truth.position_mm, axis=1)
+    i = int(np.argmin(err))
+    assert err[i] < 1e-6 * position[2]
+    assert np.degrees(np.arccos(min(1.0, normals[i] @ truth.normal))) < 1e-4
+    # Both solutions lie in front of the camera with normals facing it.
+    assert np.all(centers[:, 2] > 0)
+    assert np.all(np.einsum("ij,ij->i", normals, centers) < 0)
+
+
+def test_circle_pose_batch_and_scale_invariance() -> None:
+    """Batched input equals per-item results; the conic's scale and sign do not matter."""
+    cones = []
+    for slant in (10.0, 50.0):
+        R = rotation_from_slant_tilt(np.radians(slant), 1.1)
+        t = target_truth(CAMERA, Target(1, "dot", 7.1, R, np.array([30.0, 20.0, 800.0])))
+        cones.append(_normalised_cone(t.conics[0]))
+    c_batch, n_batch = circle_pose(np.stack(cones), np.array([1.065, 1.065]))
+    for k, cone in enumerate(cones):
+        c1, n1 = circle_pose(-3.7 * cone, 1.065)
+        np.testing.assert_allclose(c_batch[k], c1, atol=1e-9)
+        np.testing.assert_allclose(n_batch[k], n1, atol=1e-9)
+
+
+def test_circle_params_matches_homography_conic() -> None:
+    """The basis-free cone of a 3-D circle equals the homography projection."""
+    R = rotation_from_slant_tilt(np.radians(37.0), 0.4, 0.2)
+    target = Target(2, "ring", 7.1, R, np.array([-40.0, 25.0, 750.0]))
+    truth = target_truth(CAMERA, target)
+    for conic, rho in zip(truth.conics, (1.0, 0.8, 0.24), strict=True):
+        expect = params_from_conic(conic)
+        p = circle_params(target.position_mm, truth.normal, rho * 3.55)
+        # Normalised -> pixels (fx = fy).
+        got = np.concatenate([p[:2] * 5769.0 + CAMERA.K[:2, 2], p[2:] * 5769.0])
+        np.testing.assert_allclose(got, expect, rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("angle", np.linspace(0.0, np.pi, 7, endpoint=False))
+def test_parameter_round_trips(angle: float) -> None:
+    """Axes <-> square-root shape <-> conic conversions invert each other over all angles."""
+    p = params_from_axes(101.5, -33.25, 40.0, 17.5, angle)
+    np.testing.assert_allclose(axes_from_params(p), [101.5, -33.25, 40.0, 17.5, angle], atol=1e-12)
+    np.testing.assert_allclose(params_from_conic(conic_from_params(p)), p, atol=1e-9)
+    np.testing.assert_allclose(params_from_conic(fit_conics(ellipse_points(p, 12))), p, atol=1e-7)
+    # Numerical check of the axes -> parameters Jacobian.
+    x = np.array([101.5, -33.25, 40.0, 17.5, angle])
+    J = axes_to_params_jacobian(40.0, 17.5, angle)
+    for j in range(5):
+        dx = np.zeros(5)
+        dx[j] = 1e-6
+        num = (params_from_axes(*(x + dx)) - params_from_axes(*(x - dx))) / 2e-6
+        np.testing.assert_allclose(J[:, j], num, atol=1e-7)
+
+
+def test_not_an_ellipse_gives_nan() -> None:
+    """A hyperbola has no ellipse parameters."""
+    hyperbola = np.diag([1.0, -1.0, -1.0])
+    assert np.all(np.isnan(params_from_conic(hyperbola)))

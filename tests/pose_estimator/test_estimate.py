@@ -1,0 +1,146 @@
+"""Pose of detected fiducials against ground truth: accuracy, ambiguity, distortion, covariance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pose_synth import synthetic_detection
+
+from armourcam.render import Target, rotation_from_slant_tilt
+from pose_estimator import CameraModel, FiducialPose, PoseError, estimate, estimate_arrays
+from pose_estimator.estimate import detections_to_arrays
+
+F_PX = 6507.0  # the paper's benchmark camera
+CAMERA = CameraModel.ideal(3008, 2000, F_PX)
+
+
+def _target(design: str, slant_deg: float, position: tuple[float, float, float], tilt: float = 0.4) -> Target:
+    R = rotation_from_slant_tilt(np.radians(slant_deg), tilt=tilt, spin=1.0)
+    return Target(7, design, 7.1, R, np.array(position))
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("design", ["ring", "dot"])
+@pytest.mark.parametrize("slant_deg", [0.0, 30.0, 60.0, 80.0])
+def test_exact_ellipses_give_exact_pose(design: str, slant_deg: float) -> None:
+    """Noise-free ellipses give the true centre (not the ellipse centre's ray) to 1e-6 z."""
+    target = _target(design, slant_deg, (60.0, -40.0, 770.0))
+    det = synthetic_detection(CAMERA, target, 0.0, np.random.default_rng(0))
+    (pose,) = estimate([det], CAMERA, 7.1)
+    assert isinstance(pose, FiducialPose)
+    assert pose.code == 7 and pose.detection is det
+    np.testing.assert_allclose(pose.position_mm, target.position_mm, atol=1e-6 * 770.0)
+    if design == "ring":
+        assert _angle_deg(pose.normal, target.rotation[:, 2]) < 1e-3
+
+
+@pytest.mark.parametrize(
+    ("size_px", "slant_deg"), [(120, 20.0), (120, 65.0), (35, 20.0), (35, 65.0)]
+)
+def test_noisy_ellipses_error_bounds(size_px: int, slant_deg: float) -> None:
+    """Errors stay within a few predicted sigmas and far inside the paper's Table 2 values."""
+    z = F_PX * 7.1 / size_px
+    rng = np.random.default_rng(1234)
+    target = _target("ring", slant_deg, (20.0, 10.0, z))
+    dets = [synthetic_detection(CAMERA, target, 0.05, rng) for _ in range(40)]
+    poses = estimate(dets, CAMERA, 7.1)
+    assert len(poses) == 40
+    err = np.array([p.position_mm - target.position_mm for p in poses])
+    sig = np.array([p.sigma_mm for p in poses])
+    assert np.all(np.abs(err) < 5.0 * sig)
+    paper_table2 = {120: 1.338, 35: 41.99}[size_px]  # blur 0.5, noise 1 %
+    assert np.max(np.abs(err[:, 2])) < paper_table2 / 10.0
+    # x and y are far better determined than z, as the paper observes.
+    assert np.all(sig[:, :2] < sig[:, 2:3])
+
+
+@pytest.mark.parametrize("slant_deg", [40.0, 60.0, 70.0, 75.0])
+@pytest.mark.parametrize("tilt", [0.0, 1.3, 2.9])
+def test_ambiguity_resolved_by_concentric_circles(slant_deg: float, tilt: float) -> None:
+    """At high slant the ring design's inner circles pick the true normal out of the two."""
+    rng = np.random.default_rng(7)
+    target = _target("ring", slant_deg, (-80.0, 50.0, 770.0), tilt=tilt)
+    dets = [synthetic_detection(CAMERA, target, 0.03, rng) for _ in range(10)]
+    obs, cov, radius = detections_to_arrays(dets, 3.55)
+    result = estimate_arrays(obs, cov, radius, CAMERA)
+    for normal, amb in zip(result.normal, result.ambiguity, strict=True):
+        assert _angle_deg(normal, target.rotation[:, 2]) < 1.0
+        assert amb < 1e-3
+
+
+def test_single_circle_ambiguity_is_honest() -> None:
+    """With one circle (dot design) both solutions fit; the covariance covers their spread."""
+    rng = np.random.default_rng(3)
+    target = _target("dot", 50.0, (150.0, -90.0, 700.0))
+    dets = [synthetic_detection(CAMERA, target, 0.02, rng) for _ in range(20)]
+    obs, cov, radius = detections_to_arrays(dets, 3.55)
+    result = estimate_arrays(obs, cov, radius, CAMERA)
+    assert np.all(result.ambiguity > 0.3)
+    err = result.position_mm - target.position_mm
+    m2 = np.einsum("ni,nij,nj->n", err, np.linalg.inv(result.covariance_mm2), err)
+    assert np.all(m2 < 16.3)  # chi-square(3) 99.9 %
+
+
+@pytest.mark.parametrize("model", ["plumb_bob", "rational_polynomial"])
+def test_lens_distortion_is_undone_on_the_boundaries(model: str) -> None:
+    """Near a strongly distorted corner the pose is as accurate as with an ideal lens."""
+    D = {
+        "plumb_bob": [-0.25, 0.12, 0.001, -0.0008, 0.0],
+        "rational_polynomial": [-0.25, 0.12, 0.001, -0.0008, 0.0, 0.05, -0.02, 0.01],
+    }[model]
+    cam = CameraModel(3008, 2000, CAMERA.K, model, np.array(D))
+    target = _target("ring", 35.0, (-210.0, 140.0, 770.0))
+    det = synthetic_detection(cam, target, 0.0, np.random.default_rng(0))
+    (pose,) = estimate([det], cam, 7.1)
+    assert np.linalg.norm(pose.position_mm - target.position_mm) < 0.01
+    assert _angle_deg(pose.normal, target.rotation[:, 2]) < 0.05
+    # Ignoring the distortion would be wrong by far more.
+    (naive,) = estimate([det], CAMERA, 7.1)
+    assert np.linalg.norm(naive.position_mm - target.position_mm) > 1.0
+
+
+@pytest.mark.parametrize(
+    ("design", "size_px", "slant_deg"),
+    [
+        ("ring", 120, 15.0),
+        ("ring", 120, 60.0),
+        ("ring", 45, 15.0),
+        ("ring", 45, 60.0),
+        ("dot", 60, 40.0),
+    ],
+)
+def test_covariance_is_calibrated(design: str, size_px: int, slant_deg: float) -> None:
+    """Predicted standard deviations agree with the empirical ones within +-30 %."""
+    z = F_PX * 7.1 / size_px
+    rng = np.random.default_rng(99)
+    target = _target(design, slant_deg, (0.0, 0.0, z))
+    dets = [synthetic_detection(CAMERA, target, 0.04, rng) for _ in range(200)]
+    poses = estimate(dets, CAMERA, 7.1)
+    emp = np.std([p.position_mm for p in poses], axis=0)
+    pred = np.sqrt(np.mean([p.sigma_mm**2 for p in poses], axis=0))
+    np.testing.assert_array_less(np.abs(pred / emp - 1.0), 0.3)
+
+
+def test_bad_inputs_are_named() -> None:
+    """A bad diameter or a non-detection raises PoseError naming the problem."""
+    det = synthetic_detection(CAMERA, _target("ring", 10.0, (0, 0, 700.0)), 0.0, np.random.default_rng(0))
+    with pytest.raises(PoseError, match="diameter_mm"):
+        estimate([det], CAMERA, -7.1)
+    with pytest.raises(PoseError, match="FiducialDetection"):
+        estimate(["not a detection"], CAMERA, 7.1)  # type: ignore[list-item]
+    assert estimate([], CAMERA, 7.1) == []
+
+
+def test_covariance_fallback_when_fit_reports_none() -> None:
+    """Ellipses without a usable covariance still give a pose with a nominal covariance."""
+    from dataclasses import replace
+
+    target = _target("ring", 30.0, (0.0, 0.0, 700.0))
+    det = synthetic_detection(CAMERA, target, 0.0, np.random.default_rng(0))
+    blank = tuple(replace(e, covariance=np.zeros((5, 5))) for e in det.ellipses)
+    (pose,) = estimate([replace(det, ellipses=blank)], CAMERA, 7.1)
+    np.testing.assert_allclose(pose.position_mm, target.position_mm, atol=1e-3)
+    assert np.all(np.isfinite(pose.sigma_mm)) and np.all(pose.sigma_mm > 0)

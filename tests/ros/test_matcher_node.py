@@ -1,0 +1,175 @@
+"""displacement_matcher over DDS: latched outputs for late subscribers, state across restarts."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from conftest import Nodes, Probe
+
+from armourcam import records
+from armourcam.graph import event_qos, latched_qos, stream_qos
+from pose_estimator.types import FiducialPose
+
+POSES = "/armourcam/poses"
+
+
+def field(n_units: int = 6) -> np.ndarray:
+    """True fiducial centres (mm) of a small field 700 mm away: units of 4 fiducials (codes 0-3,
+    9 mm apart on the unit), units 45 mm apart; fiducial ``i`` is on unit ``i // 4``."""
+    offsets = np.array([[0.0, 0.0, 0.0], [9.0, 0.0, 2.0], [0.0, 9.0, -2.0], [9.0, 9.0, 0.0]])
+    centres = np.array([(u % 3, u // 3, 0.0) for u in range(n_units)]) * 45.0
+    centres += [-45.0, -20.0, 700.0]
+    return (centres[:, None, :] + offsets[None]).reshape(-1, 3)
+
+
+def cloud(node: Any, truth: np.ndarray, rng: np.random.Generator) -> Any:
+    """A FiducialPoseRecord cloud of one noisy frame, stamped now."""
+    from sensor_msgs.msg import PointCloud2, PointField
+    from std_msgs.msg import Header
+
+    cov = np.diag([0.02, 0.02, 0.1]) ** 2
+    poses = [
+        FiducialPose(i % 4, p + rng.normal(0, [0.02, 0.02, 0.1]), np.array([0, 0, -1.0]), cov)
+        for i, p in enumerate(truth)
+    ]
+    header = Header(frame_id="cam")
+    header.stamp = node.get_clock().now().to_msg()
+    rows = records.poses_to_records(poses)
+    return records.to_pointcloud2(PointCloud2, PointField, header, records.POSE, rows)
+
+
+class Hall:
+    """The hall's automation and a camera feeding pose frames, published from the probe."""
+
+    def __init__(self, probe: Probe) -> None:
+        from sensor_msgs.msg import PointCloud2
+        from std_msgs.msg import Bool, String
+
+        self.probe = probe
+        n = probe.node
+        self.poses = n.create_publisher(PointCloud2, POSES, stream_qos("reliable", 50))
+        self.active = n.create_publisher(Bool, "/hall/run_active", event_qos())
+        self.run_id = n.create_publisher(String, "/hall/run_id", event_qos())
+        self.rng = np.random.default_rng(5)
+
+    def wait_matched(self) -> bool:
+        return self.probe.spin_until(lambda: self.poses.get_subscription_count() > 0, 20.0)
+
+    def frames(self, truth: np.ndarray, k: int) -> None:
+        for _ in range(k):
+            self.poses.publish(cloud(self.probe.node, truth, self.rng))
+            self.probe.spin_for(0.05)
+
+    def run(self, run_id: str, after: np.ndarray, settle: int = 3) -> None:
+        from std_msgs.msg import Bool, String
+
+        self.run_id.publish(String(data=run_id))
+        self.active.publish(Bool(data=True))
+        self.probe.spin_for(0.3)
+        self.active.publish(Bool(data=False))
+        self.probe.spin_for(0.3)
+        self.frames(after, settle)
+
+
+class Latched:
+    """A late subscriber to the matcher's latched outputs."""
+
+    def __init__(self, probe: Probe) -> None:
+        from sensor_msgs.msg import PointCloud2
+        from std_msgs.msg import String
+        from visualization_msgs.msg import MarkerArray
+
+        self.reports: list[dict[str, Any]] = []
+        self.markers: list[Any] = []
+        self.baselines: list[Any] = []
+        n = probe.node
+        n.create_subscription(
+            String,
+            "/armourcam/report",
+            lambda m: self.reports.append(json.loads(m.data)),
+            latched_qos(),
+        )
+        n.create_subscription(MarkerArray, "/armourcam/markers", self.markers.append, latched_qos())
+        n.create_subscription(
+            PointCloud2, "/armourcam/baseline", self.baselines.append, latched_qos()
+        )
+
+
+def matcher_params(data_dir: Path) -> dict[str, Any]:
+    return {"data_dir": str(data_dir), "baseline_frames": 3, "settle_frames": 3}
+
+
+def test_late_subscriber_gets_latched_report_and_markers_and_state_survives_restart(
+    nodes: Nodes, probe: Probe, tmp_path: Path
+) -> None:
+    data = tmp_path / "data"
+    nodes.start("displacement_matcher", params=matcher_params(data))
+    hall = Hall(probe)
+    assert hall.wait_matched(), nodes.log("displacement_matcher")
+    probe.spin_for(0.5)
+    truth0 = field()
+    hall.frames(truth0, 3)  # -> automatic baseline
+    truth1 = truth0.copy()
+    truth1[:4] += [10.0, 0.0, 0.0]  # one unit moves 10 mm
+    hall.run("wave-A", truth1)
+    assert probe.spin_until(lambda: (data / "runs").is_dir() and any((data / "runs").iterdir()), 20)
+    probe.spin_for(0.5)
+
+    # A subscriber that starts after the report was published still gets it (latched).
+    late = Latched(probe)
+    assert probe.spin_until(lambda: late.reports and late.markers and late.baselines, 10.0)
+    report = late.reports[-1]
+    assert report["run_id"] == "wave-A" and report["sequence"] == 1
+    moved = [
+        f
+        for f in report["fiducials"]
+        if f["displacement_mm"] is not None and np.linalg.norm(f["displacement_mm"]) > 5.0
+    ]
+    assert len(moved) == 4
+    for f in moved:
+        assert np.allclose(f["displacement_mm"], [10.0, 0.0, 0.0], atol=0.5)
+    arrows = [m for m in late.markers[-1].markers if m.type == 0 and m.action == 0]  # ARROW, ADD
+    assert len(arrows) == len(truth0)
+    green = [m for m in arrows if m.color.g > 0.5 and m.color.r < 0.5]
+    assert len(green) == len(truth0)  # all same-code matches
+    assert late.baselines[-1].width == len(truth0)
+
+    # Restart the matcher: it resumes from data_dir (baseline + run 1) and republishes.
+    assert nodes.stop("displacement_matcher") == 0
+    nodes.start("displacement_matcher", params=matcher_params(data), label="matcher2")
+    late2 = Latched(probe)
+    assert probe.spin_until(lambda: late2.reports and late2.baselines, 20.0), nodes.log("matcher2")
+    assert late2.reports[-1]["run_id"] == "wave-A"
+    assert "resumed" in nodes.log("matcher2")
+
+    # The next run is measured against the resumed baseline (cumulative) and run 1 (incremental).
+    hall2 = hall
+    assert probe.spin_until(lambda: hall2.poses.get_subscription_count() > 0, 20.0)
+    probe.spin_for(0.5)
+    truth2 = truth1.copy()
+    truth2[8:12] += [0.0, 7.0, 0.0]  # unit 2 moves 7 mm
+    hall2.run("wave-B", truth2)
+    assert probe.spin_until(lambda: any(r["run_id"] == "wave-B" for r in late2.reports), 20.0), (
+        nodes.log("matcher2")
+    )
+    rep = next(r for r in late2.reports if r["run_id"] == "wave-B")
+    assert rep["sequence"] == 2
+    inc = rep["incremental"]
+    big = [
+        f
+        for f in inc["fiducials"]
+        if f["displacement_mm"] is not None and np.linalg.norm(f["displacement_mm"]) > 3.0
+    ]
+    assert len(big) == 4
+    for f in big:
+        assert np.allclose(f["displacement_mm"], [0, 7.0, 0], atol=0.5)
+    cum = [
+        f
+        for f in rep["fiducials"]
+        if f["displacement_mm"] is not None and np.linalg.norm(f["displacement_mm"]) > 3.0
+    ]
+    assert len(cum) == 8  # run 1's unit and run 2's, both against the same baseline
+    assert nodes.alive("matcher2")
