@@ -71,9 +71,16 @@ def _result_from_pairs(
         sig = np.sqrt(np.diag(base[i].covariance_mm2 + cur[j].covariance_mm2))
         out.append(
             Displacement(
-                lab, i, j, base[i].code, cur[j].code, base[i].position_mm, cur[j].position_mm,
-                0.0, sig,
-            )  # fmt: skip
+                lab,
+                i,
+                j,
+                base[i].code,
+                cur[j].code,
+                base[i].position_mm,
+                cur[j].position_mm,
+                0.0,
+                sig,
+            )
         )
     for i in range(len(base)):
         if i not in used_b:
@@ -266,8 +273,9 @@ def poses_e2e(field: Field, seed: int, diameter_mm: float) -> tuple[list, list, 
         d, k_near = cKDTree(uv_true).query(uv.reshape(-1, 2))
         # A pose is a known fiducial when its centre is within 3 px of a truth projection and
         # its code agrees; otherwise it stays in the set as a spurious detection (id -1).
-        fid = np.where((d <= 3.0) & (state.code[ids[k_near]] == [p.code for p in poses]),
-                       ids[k_near], -1)  # fmt: skip
+        fid = np.where(
+            (d <= 3.0) & (state.code[ids[k_near]] == [p.code for p in poses]), ids[k_near], -1
+        )
         out += [poses, fid]
     return out[0], out[2], out[1], out[3]
 

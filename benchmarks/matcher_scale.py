@@ -21,9 +21,7 @@ from displacement_matcher import match
 from pose_estimator.types import FiducialPose
 
 
-def scene(
-    n: int, n_codes: int, seed: int
-) -> tuple[list[FiducialPose], list[FiducialPose]]:
+def scene(n: int, n_codes: int, seed: int) -> tuple[list[FiducialPose], list[FiducialPose]]:
     """Baseline and current pose sets of ``n`` fiducials each."""
     rng = np.random.default_rng(seed)
     side = np.sqrt(n) * 15.0

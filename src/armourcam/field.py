@@ -260,7 +260,8 @@ def make_field(
         Fraction of units moved: translated ``U(0.1, max_move_dn) * Dn`` within +-60 deg of
         down-slope, and turned up to 30 deg about a random axis.
     overturned_fraction : float
-        Fraction of units overturned (turned 180 deg about the shank) and shifted ``U(0.2, 1.5) Dn``.
+        Fraction of units overturned (turned 180 deg about the shank) and shifted
+        ``U(0.2, 1.5) Dn``.
     hidden_fraction : float
         Fraction of fiducials hidden (occluded) in each state, independently.
     pitch_dn : float
@@ -345,8 +346,8 @@ def make_field(
     before = _state(geo, rots, cents, hidden_b, max_slant_deg)
 
     order = rng.permutation(n_units)
-    n_over = int(round(overturned_fraction * n_units))
-    n_move = int(round(moved_fraction * n_units))
+    n_over = round(overturned_fraction * n_units)
+    n_move = round(moved_fraction * n_units)
     overturned = np.zeros(n_units, dtype=bool)
     moved = np.zeros(n_units, dtype=bool)
     overturned[order[:n_over]] = True

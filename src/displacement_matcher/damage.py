@@ -2,10 +2,11 @@
 
 A unit is *displaced* when its reference point moved at least the displacement threshold
 (default one nominal unit size Dn, the usual criterion for armour-unit damage counts), *moved* when
-it moved at least the movement threshold but less than that; overturned units and, by default,
-units seen before but not found after are counted apart as lost (optionally as displaced). ``N_od`` is the number of displaced
-units per strip of width Dn across the section (``displaced * Dn / section width``). Every summary
-carries its thresholds in millimetres so the numbers are never printed without them.
+it moved at least the movement threshold but less than that. Overturned units count as displaced;
+units seen before but not found after are counted apart as *lost* (optionally as displaced).
+``N_od`` is the number of displaced units per strip of width Dn across the section
+(``displaced * Dn / section width``). Every summary carries its thresholds in millimetres so the
+numbers are never printed without them.
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ def thresholds(
 
 
 def classify(unit: UnitMotion, t: DamageThresholds) -> str:
-    """Status of one unit: ``still``, ``moved``, ``displaced``, ``overturned``, ``lost``, ``unseen``."""
+    """Status of one unit: still, moved, displaced, overturned, lost or unseen."""
     if unit.status == "unseen" or (not unit.baseline_indices):
         return "unseen"
     overturned = unit.overturned or (
@@ -110,8 +111,10 @@ def assess(
         raise MatcherError(f"section width must be a positive length, got {section_width_mm!r}")
     out = tuple(dataclasses.replace(u, status=classify(u, t)) for u in units)
     seen = [u for u in out if u.status != "unseen"]
-    ids = {s: tuple(u.unit for u in seen if u.status == s) for s in
-           ("displaced", "moved", "overturned", "lost", "still")}  # fmt: skip
+    ids = {
+        s: tuple(u.unit for u in seen if u.status == s)
+        for s in ("displaced", "moved", "overturned", "lost", "still")
+    }
     displaced = list(ids["displaced"])
     if t.overturned_displaced:
         displaced += ids["overturned"]

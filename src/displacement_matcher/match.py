@@ -218,8 +218,12 @@ def _solve_block(
         er = np.concatenate([rows, np.arange(nr), nr + np.arange(nc), nr + cols])
         ec = np.concatenate([cols, nc + np.arange(nr), np.arange(nc), nc + rows])
         ew = np.concatenate(
-            [costs + off, np.full(nr, unmatched + off), np.full(nc, unmatched + off)]
-            + [np.full(len(rows), off)]
+            [
+                costs + off,
+                np.full(nr, unmatched + off),
+                np.full(nc, unmatched + off),
+                np.full(len(rows), off),
+            ]
         )
         graph = sparse.csr_array((ew, (er, ec)), shape=(size, size))
         r, c = min_weight_full_bipartite_matching(graph)
@@ -316,9 +320,7 @@ def match(
             # Usable-array positions of the excluded (input-index) pairs.
             pos_a = {int(x): k for k, x in enumerate(a.index.tolist())}
             pos_b = {int(x): k for k, x in enumerate(b.index.tolist())}
-            bad = {
-                pos_a[i] * m + pos_b[j] for i, j in exclude_pairs if i in pos_a and j in pos_b
-            }
+            bad = {pos_a[i] * m + pos_b[j] for i, j in exclude_pairs if i in pos_a and j in pos_b}
             if bad:
                 keys = ei.astype(np.int64) * m + ej
                 keep &= ~np.isin(keys, np.fromiter(bad, dtype=np.int64, count=len(bad)))
@@ -384,9 +386,7 @@ def _solve(
     if len(ei) == 0:
         empty = np.zeros(0, dtype=np.intp)
         return empty, empty, 0, 0
-    adj = sparse.coo_array(
-        (np.ones(len(ei)), (ei, n + ej)), shape=(n + m, n + m)
-    ).tocsr()
+    adj = sparse.coo_array((np.ones(len(ei)), (ei, n + ej)), shape=(n + m, n + m)).tocsr()
     _, label = connected_components(adj, directed=False)
     comp = label[ei]
     size = np.bincount(label, minlength=int(label.max()) + 1)

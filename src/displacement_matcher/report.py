@@ -184,7 +184,13 @@ def fiducials_csv(report: dict[str, Any]) -> bytes:
     header += ["distance_mm", "sigma_x_mm", "sigma_y_mm", "sigma_z_mm", "cost"]
     rows = []
     for f in report["fiducials"]:
-        row = [f["label"], f["baseline_index"], f["current_index"], f["code_before"], f["code_after"]]
+        row = [
+            f["label"],
+            f["baseline_index"],
+            f["current_index"],
+            f["code_before"],
+            f["code_after"],
+        ]
         for k in ("before_mm", "after_mm", "displacement_mm"):
             row += f[k] if f[k] is not None else ["", "", ""]
         row += [f["distance_mm"]] + (f["sigma_mm"] or ["", "", ""]) + [f["cost"]]
@@ -227,8 +233,13 @@ def overlay_image(
         if img.dtype != np.uint8:
             scale = 255.0 / max(float(np.iinfo(img.dtype).max), 1.0) if img.dtype.kind == "u" else 1
             img = np.clip(img.astype(np.float64) * scale, 0, 255).astype(np.uint8)
-        canvas = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
-    radius = max(4, int(round(min(canvas.shape[:2]) / 150)))
+        if img.ndim == 2:
+            canvas = np.asarray(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
+        elif img.shape[2] == 4:
+            canvas = np.asarray(cv2.cvtColor(img, cv2.COLOR_BGRA2BGR), dtype=np.uint8)
+        else:
+            canvas = np.array(img, dtype=np.uint8)
+    radius = max(4, round(min(canvas.shape[:2]) / 150))
 
     def px(p: NDArray[np.float64] | None) -> tuple[int, int] | None:
         if p is None or not np.all(np.isfinite(p)) or p[2] <= 0:
@@ -236,7 +247,7 @@ def overlay_image(
         uv = camera.project(p.reshape(1, 3))[0]
         if not np.all(np.isfinite(uv)):
             return None
-        return int(round(uv[0])), int(round(uv[1]))
+        return round(uv[0]), round(uv[1])
 
     for d in result.displacements:
         a, b = px(d.before_mm), px(d.after_mm)
@@ -281,7 +292,7 @@ def magnitude_plot(
     step = _nice_step(limit)
     v = 0.0
     while v <= limit + 1e-9:
-        y = int(round(y0 - (y0 - y1) * v / limit))
+        y = round(y0 - (y0 - y1) * v / limit)
         cv2.line(img, (x0 - 5, y), (x0, y), black, 1)
         cv2.putText(img, f"{v:g}", (5, y + 5), font, 0.45, black, 1, cv2.LINE_AA)
         v += step
@@ -292,20 +303,18 @@ def magnitude_plot(
     if n:
         bw = (x1 - x0) / n
         for rank, k in enumerate(order.tolist()):
-            ya = int(round(y0 - (y0 - y1) * mags[k] / limit))
-            xa = int(round(x0 + rank * bw))
-            xb = max(xa, int(round(x0 + (rank + 1) * bw)) - 1)
+            ya = round(y0 - (y0 - y1) * mags[k] / limit)
+            xa = round(x0 + rank * bw)
+            xb = max(xa, round(x0 + (rank + 1) * bw) - 1)
             color = GREEN if pairs[k].label == "same_code" else RED
             cv2.rectangle(img, (xa, ya), (xb, y0 - 1), color, -1)
     if summary is not None:
         t = summary.thresholds
         for val, name in ((t.displaced_mm, "displaced"), (t.moved_mm, "moved")):
-            y = int(round(y0 - (y0 - y1) * val / limit))
+            y = round(y0 - (y0 - y1) * val / limit)
             for xs in range(x0, x1, 12):
                 cv2.line(img, (xs, y), (min(xs + 6, x1), y), (90, 90, 90), 1)
-            cv2.putText(
-                img, f"{name} {val:.1f} mm", (x1 - 170, y - 4), font, 0.45, (60, 60, 60), 1
-            )
+            cv2.putText(img, f"{name} {val:.1f} mm", (x1 - 170, y - 4), font, 0.45, (60, 60, 60), 1)
     return img
 
 

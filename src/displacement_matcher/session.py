@@ -231,16 +231,22 @@ class _Window:
         self.stable_run = 0
 
 
+DEPTH_TOLERANCE_FACTOR = 4.0
+"""Along the viewing ray a settled fiducial may differ this many times ``tolerance_mm``."""
+
+
 def frames_agree(
     a: Sequence[FiducialPose], b: Sequence[FiducialPose], tolerance_mm: float, fraction: float
 ) -> bool:
     """Whether two pose sets show the same, unmoved scene.
 
-    Each fiducial of the larger set needs a partner of the same code in the other within
-    ``tolerance_mm`` plus three standard deviations of their difference (from both
-    covariances: monocular depth is far less certain than x and y, and its frame-to-frame noise
-    is not movement); at least ``fraction`` of them must have one (a glint or a passing
-    occlusion may hide a few). Two empty sets agree.
+    Each fiducial of the larger set needs a partner of the same code in the other whose
+    difference is within ``tolerance_mm`` across the viewing ray and
+    ``DEPTH_TOLERANCE_FACTOR * tolerance_mm`` along it, each plus three standard deviations of
+    the difference from both covariances: monocular depth is several times less certain than
+    the lateral position (paper section 4), so its frame-to-frame noise is not movement, while a
+    unit still rocking shows up across the ray. At least ``fraction`` of the fiducials must have
+    a partner (a glint or a passing occlusion may hide a few). Two empty sets agree.
     """
     if len(a) < len(b):
         a, b = b, a
@@ -248,19 +254,30 @@ def frames_agree(
         return True
     if not b:
         return False
+    pa = np.array([p.position_mm for p in a], dtype=np.float64)
     pb = np.array([p.position_mm for p in b], dtype=np.float64)
-    cb = np.array([p.code for p in b])
-    tree = cKDTree(pb)
+    ca = np.array([np.asarray(p.covariance_mm2, dtype=np.float64) for p in a])
+    cb = np.array([np.asarray(p.covariance_mm2, dtype=np.float64) for p in b])
+    codes_b = np.array([p.code for p in b])
     k = min(4, len(b))
-    dist, idx = tree.query(np.array([p.position_mm for p in a], dtype=np.float64), k=k)
-    dist = np.asarray(dist).reshape(len(a), k)
+    dist, idx = cKDTree(pb).query(pa, k=k)
     idx = np.asarray(idx).reshape(len(a), k)
-    codes_a = np.array([p.code for p in a])[:, None]
-    var_a = np.array([np.trace(np.asarray(p.covariance_mm2)) for p in a])
-    var_b = np.array([np.trace(np.asarray(p.covariance_mm2)) for p in b])
-    var = np.nan_to_num(var_a[:, None] + var_b[idx], nan=0.0, posinf=0.0).clip(0.0)
-    limit = tolerance_mm + 3.0 * np.sqrt(var)
-    ok = np.any((dist <= limit) & (cb[idx] == codes_a), axis=1)
+    ok = np.zeros(len(a), dtype=bool)
+    ray = pa / np.linalg.norm(pa, axis=1, keepdims=True).clip(1e-9)
+    codes_a = np.array([p.code for p in a])
+    for j in range(k):
+        nb = idx[:, j]
+        d = pb[nb] - pa
+        along = np.einsum("ij,ij->i", d, ray)
+        lateral = np.linalg.norm(d - along[:, None] * ray, axis=1)
+        cov = np.nan_to_num(ca + cb[nb], nan=0.0, posinf=0.0)
+        var_along = np.einsum("ij,ijk,ik->i", ray, cov, ray).clip(0.0)
+        var_lateral = (np.trace(cov, axis1=1, axis2=2) - var_along).clip(0.0)
+        ok |= (
+            (codes_b[nb] == codes_a)
+            & (lateral <= tolerance_mm + 3.0 * np.sqrt(var_lateral))
+            & (np.abs(along) <= DEPTH_TOLERANCE_FACTOR * tolerance_mm + 3.0 * np.sqrt(var_along))
+        )
     return bool(ok.mean() >= fraction)
 
 
@@ -303,6 +320,8 @@ class Session:
         self._capture_requested = False
         self._settle_count = 0
         self._stop_stamp: float | None = None
+        self._start_stamp: float | None = None
+        self._baseline_due = False
         self._window = _Window(max(config.baseline_frames, config.settle_frames))
         self.phase = Phase.WAITING_BASELINE
         if config.data_dir is not None:
@@ -322,37 +341,49 @@ class Session:
         return [Notice("info", f"capturing baseline from {self.config.baseline_frames} frames")]
 
     def set_run_id(self, run_id: str) -> list[Event]:
-        """The hall announced the id of the current or next run."""
+        """The hall announced the id of the current run (while one is active) or of the next."""
         run_id = run_id.strip()
         if not run_id:
             return [Notice("warn", "empty run id ignored")]
-        self._pending_run_id = run_id
-        if self._run_active or self.phase == Phase.SETTLING:
+        if self._run_active:
+            # Announced just before the start but delivered after it (separate topics).
             self._current_run_id = run_id
+        else:
+            self._pending_run_id = run_id
         return []
 
     def set_run_active(self, active: bool, stamp_s: float | None = None) -> list[Event]:
         """The hall's run state changed (repeated identical states are harmless).
 
-        ``stamp_s`` is when the change happened, on the clock of the frames' stamps; after a
-        stop, frames stamped earlier (still in flight through the pipeline when the stop
-        arrived, showing the moving scene) are not used for settling.
+        ``stamp_s`` is when the change happened, on the clock of the frames' stamps. Frames
+        stamped before a start that arrive after it (still in flight through the pipeline) still
+        count for a pending baseline; frames stamped before a stop (the scene still moving) are
+        not used for settling.
         """
         events: list[Event] = []
         if active == self._run_active:
             return events
         self._run_active = active
-        self._stop_stamp = None if active else stamp_s
         if active:
-            if self.baseline is None:
-                events += self._baseline_from_window("auto", partial=True)
+            if self.phase == Phase.SETTLING:
+                # The next run started before the last one settled: measure it as it is.
+                events += self._finish_run(force=True)
+            self._start_stamp = stamp_s
+            self._stop_stamp = None
+            if self.baseline is None and (self._capture_requested or self.config.auto_baseline):
+                # Take the baseline from the frames before the start, including any still
+                # in flight; it is fused at the first frame stamped after the start.
+                self._baseline_due = True
+            else:
+                self._window.clear()
             self._current_run_id = self._pending_run_id or f"run-{len(self.runs) + 1:03d}"
             self._pending_run_id = None
-            self._capture_requested = False
-            self._window.clear()
             self.phase = Phase.RUN_ACTIVE
             events.append(Notice("info", f"run {self._current_run_id} started"))
         else:
+            if self._baseline_due:
+                events += self._baseline_from_window("auto", partial=True)
+            self._stop_stamp = stamp_s
             self._window.clear()
             self._settle_count = 0
             self.phase = Phase.SETTLING
@@ -363,23 +394,22 @@ class Session:
         """One frame's pose set (possibly empty)."""
         self.frames_seen += 1
         self.last_frame_fiducials = len(poses)
+        start, stop = self._start_stamp, self._stop_stamp
         if self.phase == Phase.RUN_ACTIVE:
-            return []
-        stop = self._stop_stamp
+            if not self._baseline_due:
+                return []
+            if start is not None and stamp_s < start:
+                self._push(poses, stamp_s)  # a pre-run frame arriving late: still baseline
+                if self._settled(self.config.baseline_frames):
+                    return self._baseline_from_window("auto", partial=False)
+                return []
+            return self._baseline_from_window("auto", partial=True)
         if self.phase == Phase.SETTLING and stop is not None and stamp_s < stop:
             return []
-        frame = (tuple(poses), float(stamp_s))
-        win = self._window
-        if win.frames:
-            prev = win.frames[-1][0]
-            cfg = self.config
-            agree = frames_agree(prev, frame[0], cfg.settle_tolerance_mm, cfg.settle_fraction)
-            win.stable_run = win.stable_run + 1 if agree else 0
-        win.frames.append(frame)
-        while len(win.frames) > win.maxlen:
-            win.frames.popleft()
+        self._push(poses, stamp_s)
         if self.phase == Phase.SETTLING:
-            return self._on_settling_frame()
+            self._settle_count += 1
+            return self._finish_run(force=False)
         wants_baseline = self._capture_requested or (
             self.baseline is None and self.config.auto_baseline and not self.runs
         )
@@ -387,6 +417,15 @@ class Session:
             reason = "command" if self._capture_requested else "auto"
             return self._baseline_from_window(reason, partial=False)
         return []
+
+    def end_of_input(self) -> list[Event]:
+        """No more frames will come (end of a bag): finish a pending baseline or run."""
+        events: list[Event] = []
+        if self.baseline is None and self._window.frames and self.phase != Phase.SETTLING:
+            events += self._baseline_from_window("auto", partial=True)
+        if self.phase == Phase.SETTLING:
+            events += self._finish_run(force=True)
+        return events
 
     # ------------------------------------------------------------------ state
 
@@ -409,6 +448,19 @@ class Session:
 
     # ------------------------------------------------------------------ internals
 
+    def _push(self, poses: Sequence[FiducialPose], stamp_s: float) -> None:
+        frame = (tuple(poses), float(stamp_s))
+        win = self._window
+        if win.frames:
+            cfg = self.config
+            agree = frames_agree(
+                win.frames[-1][0], frame[0], cfg.settle_tolerance_mm, cfg.settle_fraction
+            )
+            win.stable_run = win.stable_run + 1 if agree else 0
+        win.frames.append(frame)
+        while len(win.frames) > win.maxlen:
+            win.frames.popleft()
+
     def _settled(self, n: int) -> bool:
         win = self._window
         return len(win.frames) >= n and (n == 1 or win.stable_run >= n - 1)
@@ -423,8 +475,10 @@ class Session:
         fused = tuple(self._fuse([f for f, _ in frames]))
         self.baseline = Baseline(fused, len(frames), frames[-1][1], reason)
         self._capture_requested = False
+        self._baseline_due = False
         self._window.clear()
-        self.phase = Phase.MONITORING
+        if self.phase not in (Phase.RUN_ACTIVE, Phase.SETTLING):
+            self.phase = Phase.MONITORING
         self._save_baseline()
         events: list[Event] = [BaselineCaptured(self.baseline)]
         if partial:
@@ -433,16 +487,18 @@ class Session:
             )
         return events
 
-    def _on_settling_frame(self) -> list[Event]:
-        self._settle_count += 1
+    def _finish_run(self, *, force: bool) -> list[Event]:
+        """Measure the run once the scene settled (or now, with ``force``)."""
         cfg = self.config
         settled = self._settled(cfg.settle_frames)
-        if not settled and self._settle_count < cfg.settle_timeout_frames:
+        if not (settled or force or self._settle_count >= cfg.settle_timeout_frames):
             return []
         frames = self._last_frames(cfg.settle_frames)
-        after = tuple(self._fuse([f for f, _ in frames]))
         run_id = self._current_run_id or f"run-{len(self.runs) + 1:03d}"
         events: list[Event] = []
+        if not frames:
+            events.append(Notice("error", f"run {run_id}: no frame after the run to measure"))
+        after = tuple(self._fuse([f for f, _ in frames])) if frames else ()
         if not settled:
             events.append(
                 Notice("warn", f"run {run_id}: scene not settled after {self._settle_count} frames")
@@ -450,7 +506,10 @@ class Session:
         report: dict[str, Any]
         markers: tuple[MarkerSpec, ...] = ()
         rows: tuple[dict[str, Any], ...] = ()
-        if self.baseline is None:
+        if not frames:
+            # Never report "everything vanished" for a scene that was simply not seen.
+            report = {"fiducials": [], "units": [], "summary": {}, "error": "no frame after run"}
+        elif self.baseline is None:
             report = {"fiducials": [], "units": [], "summary": {}, "error": "no baseline"}
             events.append(Notice("error", f"run {run_id}: no baseline to compare against"))
         else:
@@ -458,7 +517,7 @@ class Session:
             report = dict(cumulative.report)
             markers = cumulative.markers
             rows = cumulative.rows
-        previous = self.runs[-1].poses if self.runs else None
+        previous = self.runs[-1].poses if self.runs and frames else None
         incremental = (
             self._safe_compare(previous, after, events, run_id).report
             if previous is not None
@@ -469,7 +528,7 @@ class Session:
             sequence=len(self.runs) + 1,
             settled=settled,
             frames_fused=len(frames),
-            stamp_s=frames[-1][1],
+            stamp_s=frames[-1][1] if frames else None,
             incremental=incremental,
         )
         run = RunRecord(run_id, len(self.runs) + 1, after, report, markers, rows)

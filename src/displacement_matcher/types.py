@@ -178,9 +178,9 @@ class UnitMotion:
     n_matched : int
         Fiducials of the unit matched between the two sets.
     method : {"rigid", "translation", "none"}
-        ``rigid``: weighted Kabsch/Umeyama over >= 3 consistently matched fiducials;
-        ``translation``: 1-2 matches, rotation unknown (identity); ``none``: nothing to measure
-        (``status`` says why).
+        ``rigid``: weighted Kabsch/Umeyama over >= 3 consistently matched fiducials, or over >= 2
+        whose normals (before and after) fix the rotation; ``translation``: otherwise, rotation
+        unknown (identity); ``none``: nothing to measure (``status`` says why).
     rotation : (3, 3) ndarray
         Rotation, camera frame (identity when unknown).
     translation_mm : (3,) ndarray
@@ -188,9 +188,10 @@ class UnitMotion:
     rotation_deg : float or None
         Rotation angle, degrees (None when unknown).
     reference_before_mm : (3,) ndarray
-        The reference point in the baseline: the centroid of the unit's baseline fiducials for a
-        rigid fit, of its matched ones for a translation (the mean of their displacements is then
-        exactly the centroid's, whatever the rotation).
+        The reference point in the baseline: the unit's own origin when the unit map's template
+        locates it (template fitted to the unit's baseline fiducials), else the centroid of its
+        baseline fiducials for a rigid fit, of its matched ones for a translation (the mean of
+        their displacements is then exactly the centroid's, whatever the rotation).
     residual_mm : float
         RMS residual of the rigid fit, mm (0 for fewer than 3 fiducials).
     status : {"still", "moved", "displaced", "overturned", "lost", "unseen"}

@@ -15,8 +15,9 @@ Unit map YAML (lengths in mm, positions in the unit's own frame)::
     # or
     template:               # the same code set on every unit
       codes: [3, 17, 29, 41]
-      positions_mm: {3: [9.5, 15.2, 0], 17: [9.5, -15.2, 0], 29: [-9.5, 0, 15.2], 41: [-9.5, 0, -15.2]}
-      normals: {3: [0, 1, 1], 17: [0, -1, 1], 29: [0, 0, 1], 41: [0, 0, -1]}   # optional
+      positions_mm: {3: [9.5, 15.2, 0], 17: [9.5, -15.2, 0],
+                     29: [-9.5, 0, 15.2], 41: [-9.5, 0, -15.2]}
+      normals: {3: [0, 1, 1], 17: [0, -1, 1], 29: [0, 0, 1], 41: [0, 0, -1]}  # optional
       span_mm: 35           # optional: largest distance between two fiducials of a unit
 
 Per unit the motion is a weighted rigid fit (Kabsch/Umeyama without scale) when at least three of
@@ -41,6 +42,7 @@ from fiducial_detector.codebook import code_count
 from pose_estimator.types import FiducialPose
 
 from .errors import MatcherError
+from .rigid import consistent_subset, rigid_fit
 from .types import MatchResult, UnitMotion
 
 DEFAULT_SPAN_MM = 40.0
@@ -226,8 +228,7 @@ def group_fiducials(
     idx = [
         i
         for i, p in enumerate(poses)
-        if np.all(np.isfinite(p.position_mm))
-        and (allowed is None or int(p.code) in allowed)
+        if np.all(np.isfinite(p.position_mm)) and (allowed is None or int(p.code) in allowed)
     ]
     if not idx:
         return []
@@ -310,89 +311,43 @@ def group_fiducials(
     return sorted(out, key=lambda g: g[0])
 
 
-def kabsch(
-    src: NDArray[np.float64], dst: NDArray[np.float64], weights: NDArray[np.float64] | None = None
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Weighted least-squares rotation and translation ``dst ~ R @ src + t`` (Umeyama, no scale).
+def _unit_normals(poses: Sequence[FiducialPose]) -> NDArray[np.float64] | None:
+    """Unit normals of the poses as ``(k, 3)``, or None when any is unusable."""
+    if not poses:
+        return None
+    n = np.array([np.asarray(p.normal, dtype=np.float64).reshape(-1) for p in poses])
+    if n.shape[1] != 3:
+        return None
+    length = np.linalg.norm(n, axis=1)
+    if not np.all(np.isfinite(length)) or np.any(length < 0.5):
+        return None
+    return np.asarray(n / length[:, None], dtype=np.float64)
 
-    Parameters
-    ----------
-    src, dst : (N, 3) ndarray
-        Corresponding points, N >= 3 (not all collinear for a unique rotation).
-    weights : (N,) ndarray, optional
-        Non-negative weights (default equal).
 
-    Returns
-    -------
-    R : (3, 3) ndarray
-        Proper rotation (det +1).
-    t : (3,) ndarray
+def _unit_centre(poses: Sequence[FiducialPose], template: UnitSpec) -> NDArray[np.float64] | None:
+    """The unit's own origin in the camera frame, from the template fitted to its fiducials.
+
+    Needs template positions for >= 3 of them, or >= 2 with normals on both sides; None when
+    the fit is impossible or poor (RMS above 5 mm: a grouping mistake, not a unit).
     """
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
-    w = w / w.sum()
-    cs, cd = w @ src, w @ dst
-    H = (src - cs).T @ ((dst - cd) * w[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T))) or 1.0])
-    R = Vt.T @ D @ U.T
-    return R, cd - R @ cs
-
-
-def _consistent_subset(
-    before: NDArray[np.float64],
-    after: NDArray[np.float64],
-    sigma: NDArray[np.float64],
-    turn: NDArray[np.float64],
-    tol_mm: float,
-) -> list[int]:
-    """Largest subset of a unit's matches that one rigid motion can explain.
-
-    Two matches ``i, j`` agree when the distance between them is preserved and their displacements
-    differ by no more than a rotation can make them: ``|d_i - d_j| <= 2 sin(theta / 2) |p_i - p_j|``
-    where ``theta`` bounds the unit's rotation from the turn of the two fiducials' normals (plus
-    15 deg for normal noise), each within ``tol_mm`` plus three standard deviations along the line.
-    Among subsets of equal size the one with the smallest total displacement wins (most units do
-    not move: a still unit's hidden fiducial that grabbed a stranger loses to its matched ones),
-    then the one with the smallest distance change.
-
-    Parameters
-    ----------
-    before, after : (k, 3) ndarray
-        Matched positions, mm.
-    sigma : (k, 3) ndarray
-        Standard deviations of the displacements, mm.
-    turn : (k,) ndarray
-        Angle between each fiducial's normal before and after, radians (NaN: unknown).
-    """
-    k = len(before)
-    if k <= 1:
-        return list(range(k))
-    vb = before[:, None] - before[None]
-    db = np.linalg.norm(vb, axis=2)
-    da = np.linalg.norm(after[:, None] - after[None], axis=2)
-    disp = after - before
-    move = np.linalg.norm(disp, axis=1)
-    ddiff = np.linalg.norm(disp[:, None] - disp[None], axis=2)
-    u = vb / np.maximum(db, 1e-9)[..., None]
-    var = np.einsum("ijk,ik->ij", u**2, sigma**2) + np.einsum("ijk,jk->ij", u**2, sigma**2)
-    tol = tol_mm + 3.0 * np.sqrt(var)
-    err = np.abs(db - da)
-    t = np.where(np.isfinite(turn), turn, np.pi)
-    theta = np.minimum(np.maximum(t[:, None], t[None, :]) + np.radians(15.0), np.pi)
-    ok = (err <= tol) & (ddiff <= 2.0 * np.sin(theta / 2.0) * db + tol)
-    for size in range(k, 0, -1):
-        best: tuple[float, float, list[int]] | None = None
-        for sub in itertools.combinations(range(k), size):
-            if all(ok[i, j] for i, j in itertools.combinations(sub, 2)):
-                key = (
-                    float(sum(move[i] for i in sub)),
-                    float(sum(err[i, j] for i, j in itertools.combinations(sub, 2))),
-                )
-                if best is None or key < best[:2]:
-                    best = (key[0], key[1], list(sub))
-        if best is not None:
-            return best[2]
-    return []
+    sel = [p for p in poses if int(p.code) in template.positions_mm]
+    if len(sel) < 2:
+        return None
+    local = np.array([template.positions_mm[int(p.code)] for p in sel])
+    seen = np.array([p.position_mm for p in sel], dtype=np.float64)
+    n_seen = _unit_normals(sel)
+    has_tn = all(int(p.code) in template.normals for p in sel)
+    w = np.array([1.0 / max(float(np.trace(p.covariance_mm2)) / 3.0, 1e-6) for p in sel])
+    if n_seen is not None and has_tn:
+        n_local = np.array([template.normals[int(p.code)] for p in sel])
+        R, t = rigid_fit(local, seen, w, n_local, n_seen)
+    elif len(sel) >= 3:
+        R, t = rigid_fit(local, seen, w)
+    else:
+        return None
+    if np.sqrt(np.mean(np.sum((local @ R.T + t - seen) ** 2, axis=1))) > 5.0:
+        return None
+    return np.asarray(t, dtype=np.float64)
 
 
 def _turn(a: FiducialPose, b: FiducialPose) -> float:
@@ -474,9 +429,7 @@ def unit_motions(
     base, cur = result.baseline, result.current
     span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
     if groups is None:
-        groups = assign_units(
-            result, unit_map=unit_map, span_mm=span, rigid_tol_mm=rigid_tol_mm
-        )
+        groups = assign_units(result, unit_map=unit_map, span_mm=span, rigid_tol_mm=rigid_tol_mm)
     unit_list, unassigned = groups
 
     unit_of_b = {i: n for n, (_, ix) in enumerate(unit_list) for i in ix}
@@ -513,11 +466,11 @@ def unit_motions(
         for n, (_, ix) in enumerate(unit_list):
             ref = [cur[j].position_mm for j in cur_of[n]] or [base[i].position_mm for i in ix]
             codes_now = {int(cur[j].code) for j in cur_of[n]}
-            if code in codes_now:
+            if code in codes_now or not ref:
                 continue
-            if unit_map is not None and unit_map.template is not None:
-                if code not in unit_map.template.codes:
-                    continue
+            tmpl = unit_map.template if unit_map is not None else None
+            if tmpl is not None and code not in tmpl.codes:
+                continue
             dist = float(np.min(np.linalg.norm(np.asarray(ref) - d.after_mm, axis=1)))
             if dist < best_d:
                 best, best_d = n, dist
@@ -529,9 +482,7 @@ def unit_motions(
     normals = unit_map.template.normals if unit_map is not None and unit_map.template else {}
     for n, (name, ix) in enumerate(unit_list):
         before_codes = {int(base[i].code) for i in ix}
-        new_codes = tuple(
-            sorted({int(cur[j].code) for j in cur_of[n]} - before_codes)
-        )
+        new_codes = tuple(sorted({int(cur[j].code) for j in cur_of[n]} - before_codes))
         out.append(
             _motion_of_unit(
                 name,
@@ -546,6 +497,7 @@ def unit_motions(
                 overturn_deg,
                 new_codes,
                 normals,
+                unit_map.template if unit_map is not None else None,
             )
         )
     return tuple(out), tuple(unassigned)
@@ -564,6 +516,7 @@ def _motion_of_unit(
     overturn_deg: float,
     new_codes: tuple[int, ...] = (),
     normals: dict[int, NDArray[np.float64]] | None = None,
+    template: UnitSpec | None = None,
 ) -> UnitMotion:
     """Motion of one unit from its matched fiducials (see :func:`unit_motions`).
 
@@ -572,9 +525,7 @@ def _motion_of_unit(
     """
     codes = tuple(int(base[i].code) for i in ix)
     nan3 = np.full(3, np.nan)
-    ref_all = (
-        np.mean([base[i].position_mm for i in ix], axis=0).astype(np.float64) if ix else nan3
-    )
+    ref_all = np.mean([base[i].position_mm for i in ix], axis=0).astype(np.float64) if ix else nan3
     n_cross = sum(d.label == "cross_code" for d in pairs)
     same = [d for d in pairs if d.label == "same_code"]
     use = same if same else [d for d in pairs if d.label == "cross_code"]
@@ -596,28 +547,69 @@ def _motion_of_unit(
     if not ix:
         status = "unseen"
         return UnitMotion(
-            name, codes, (), current_indices, 0, "none", np.eye(3), nan3, None, nan3, 0.0,
-            False, 0, n_appeared, 0, status,
-        )  # fmt: skip
+            name,
+            codes,
+            (),
+            current_indices,
+            0,
+            "none",
+            np.eye(3),
+            nan3,
+            None,
+            nan3,
+            0.0,
+            False,
+            0,
+            n_appeared,
+            0,
+            status,
+        )
     if not use:
         return UnitMotion(
-            name, codes, tuple(ix), current_indices, 0, "none", np.eye(3), nan3, None, ref_all,
-            0.0, turned_over, n_vanished, n_appeared, n_cross, "lost",
-        )  # fmt: skip
+            name,
+            codes,
+            tuple(ix),
+            current_indices,
+            0,
+            "none",
+            np.eye(3),
+            nan3,
+            None,
+            ref_all,
+            0.0,
+            turned_over,
+            n_vanished,
+            n_appeared,
+            n_cross,
+            "lost",
+        )
     before = np.array([d.before_mm for d in use], dtype=np.float64)
     after = np.array([d.after_mm for d in use], dtype=np.float64)
     sig = np.array([d.sigma_mm for d in use], dtype=np.float64).reshape(-1, 3)
     var = np.sum(sig**2, axis=1) / 3.0
     turn = np.array([_turn(base[d.baseline_index], cur[d.current_index]) for d in use])
+    nb_all = _unit_normals([base[d.baseline_index] for d in use])
+    na_all = _unit_normals([cur[d.current_index] for d in use])
     keep = (
-        _consistent_subset(before, after, sig, turn, rigid_tol_mm) if same else list(range(len(use)))
+        consistent_subset(before, after, sig, turn, rigid_tol_mm, nb_all, na_all)
+        if same
+        else list(range(len(use)))
     )
+    kept = [use[k] for k in keep]
     before, after, var = before[keep], after[keep], var[keep]
     w = 1.0 / np.maximum(var, 1e-6)
-    if len(keep) >= 3 and np.linalg.matrix_rank(before - before.mean(axis=0), tol=1e-6) >= 2:
-        R, t = kabsch(before, after, w)
+    nb = _unit_normals([base[d.baseline_index] for d in kept])
+    na = _unit_normals([cur[d.current_index] for d in kept])
+    with_normals = bool(same) and nb is not None and na is not None
+    centre = _unit_centre([base[i] for i in ix], template) if template is not None else None
+    rigid_ok = len(keep) >= 3 and np.linalg.matrix_rank(before - before.mean(axis=0), 1e-6) >= 2
+    if (len(keep) >= 2 and with_normals) or rigid_ok:
+        if with_normals:
+            R, t = rigid_fit(before, after, w, nb, na)
+        else:
+            R, t = rigid_fit(before, after, w)
         resid = float(np.sqrt(np.mean(np.sum((before @ R.T + t - after) ** 2, axis=1))))
-        ref = ref_all
+        ref = centre if centre is not None else ref_all
         trans = R @ ref + t - ref
         rot_deg: float | None = _rotation_deg(R)
         method = "rigid"
@@ -708,8 +700,13 @@ def match_units(
         raise MatcherError(f"refine_passes must be >= 0, got {refine_passes}")
     result = match(baseline, current, **match_kw)
     groups = assign_units(result, unit_map=unit_map, span_mm=span_mm, rigid_tol_mm=rigid_tol_mm)
-    kw = {"unit_map": unit_map, "span_mm": span_mm, "rigid_tol_mm": rigid_tol_mm,
-          "overturn_deg": overturn_deg, "groups": groups}  # fmt: skip
+    kw = {
+        "unit_map": unit_map,
+        "span_mm": span_mm,
+        "rigid_tol_mm": rigid_tol_mm,
+        "overturn_deg": overturn_deg,
+        "groups": groups,
+    }
     units, unassigned = unit_motions(result, **kw)  # type: ignore[arg-type]
     span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
     template = unit_map.template if unit_map is not None else None
@@ -761,7 +758,11 @@ def _unit_conflicts(
     still unit's hidden fiducial grabbing a moved neighbour's newly visible one, say).
     """
     unit_of = {i: n for n, (_, ix) in enumerate(base_units) for i in ix}
-    pair_of = {d.current_index: d.baseline_index for d in result.displacements if d.is_match}
+    pair_of: dict[int, int] = {
+        int(d.current_index): int(d.baseline_index)
+        for d in result.displacements
+        if d.is_match and d.current_index is not None and d.baseline_index is not None
+    }
     out: set[tuple[int, int]] = set()
     for g in cur_groups:
         members = [(pair_of[j], j) for j in g if j in pair_of]
@@ -774,6 +775,6 @@ def _unit_conflicts(
         if len(winners) != 1:
             continue
         for (i, j), o in zip(members, owners, strict=True):
-            if o != winners[0] and i is not None:
-                out.add((int(i), int(j)))
+            if o != winners[0]:
+                out.add((i, j))
     return out

@@ -72,6 +72,9 @@ class TrackReading:
     consistent : (N,) bool
         Passed rules 1-3 (inside the image, contrast, concentric regions): looks like a fiducial of
         the design whatever the code read.
+    nearest : (N,) int64
+        Hamming distance of the bits read to the nearest rotation of any code (for consistent
+        candidates; ``BITS + 1`` for the others).
     code, rotation_sector, hamming : (N,) int64
         Nearest code, the code's sector read first, Hamming distance (``BITS + 1`` when more than
         one sector is wrong or the candidate was rejected before decoding).
@@ -88,6 +91,7 @@ class TrackReading:
 
     accepted: NDArray[np.bool_]
     consistent: NDArray[np.bool_]
+    nearest: NDArray[np.int64]
     code: NDArray[np.int64]
     rotation_sector: NDArray[np.int64]
     hamming: NDArray[np.int64]
@@ -125,6 +129,28 @@ def _decode_table() -> tuple[NDArray[np.int16], NDArray[np.int8], NDArray[np.int
         rot[w] = flat_r
         dist[w] = 0 if flip == 0 else 1
     return code, rot, dist
+
+
+@lru_cache(maxsize=1)
+def _all_words() -> NDArray[np.int64]:
+    """Every rotation of every code word as a 16-bit integer, shape (codes * BITS,)."""
+    weights = (1 << np.arange(BITS)).astype(np.int64)
+    return (rotation_table().astype(np.int64) * weights).sum(axis=2).ravel()
+
+
+@lru_cache(maxsize=1)
+def _popcount16() -> NDArray[np.uint8]:
+    return np.array([bin(i).count("1") for i in range(1 << BITS)], dtype=np.uint8)
+
+
+def _nearest_distance(words: NDArray[np.int64], known: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Distance to the nearest code rotation; computed only where the table says it is > 1."""
+    out = known.copy()
+    far = np.nonzero(known > 1)[0]
+    if far.size:
+        xor = words[far, None] ^ _all_words()[None, :]
+        out[far] = _popcount16()[xor].min(axis=1)
+    return out
 
 
 def _rot2(angle: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -313,6 +339,7 @@ def read_codes(
     weak = margin < cfg.weak_margin
     ok &= ~(wrong & ~weak).any(axis=1)
     ok &= weak.sum(axis=1) <= cfg.max_weak_bits
+    nearest = np.where(consistent, _nearest_distance(words, dist), BITS + 1)
     dist = np.where(ok, dist, BITS + 1)
 
     # Boundary between the code's sectors 15 and 0 sits at read index (BITS - rot) % BITS.
@@ -323,6 +350,7 @@ def read_codes(
     return TrackReading(
         accepted=ok,
         consistent=consistent,
+        nearest=nearest,
         code=code,
         rotation_sector=rot,
         hamming=dist,

@@ -67,12 +67,14 @@ class Boundaries:
         )
 
 
-def outer_boundaries(binary: NDArray[np.uint8], *, max_extent: float) -> Boundaries:
+def outer_boundaries(
+    binary: NDArray[np.uint8], *, max_extent: float, min_hull_extent: float = 0.0
+) -> Boundaries:
     """Outer boundaries of the black (non-zero) regions of ``binary``, with size limits.
 
     A boundary that is not itself elliptical (a broken thin ring traced as a "C") is replaced by
-    its convex hull when most of its points lie on the hull's moment ellipse: small, slanted
-    ``ring`` fiducials often lose a pixel of their annulus where it is thinnest.
+    its convex hull when most of its points lie in the outer part of the hull's moment ellipse:
+    small, slanted ``ring`` fiducials often lose a pixel of their annulus where it is thinnest.
 
     Parameters
     ----------
@@ -80,44 +82,46 @@ def outer_boundaries(binary: NDArray[np.uint8], *, max_extent: float) -> Boundar
         Thresholded image, non-zero = black.
     max_extent : float
         Largest accepted major axis (diameter), pixels; longer boundaries are discarded.
+    min_hull_extent : float
+        Only boundaries at least this long (major axis, pixels) get the convex-hull retry.
 
     Returns
     -------
     Boundaries
-        Boundaries at least ``MIN_BOUNDARY_PX`` long (by their ellipse's perimeter) and at most
-        ``max_extent`` across.
+        Boundaries at least ``MIN_BOUNDARY_PX`` long (by point count and by their ellipse's
+        perimeter) and at most ``max_extent`` across.
     """
     # RETR_CCOMP puts the outer boundary of every component at the top level, including
-    # components that sit inside another one's hole; SIMPLE chains keep the same polygon.
-    contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    # components that sit inside another one's hole. With unapproximated chains the point count
+    # is the boundary length, so step 2's short-boundary limit costs nothing per contour.
+    contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
     if hierarchy is None:
         return _empty()
-    top = hierarchy[0][:, 3] < 0
-    kept = []
-    moments = []
-    for contour, is_top in zip(contours, top.tolist(), strict=True):
-        # Fewer than 4 corners: a speck or a straight sliver, never a boundary of 10 pixels.
-        if is_top and len(contour) >= 4:
-            m = cv2.moments(contour)
-            kept.append(contour)
-            moments.append((m["m00"], m["m10"], m["m01"], m["mu20"], m["mu11"], m["mu02"]))
-    if not moments:
+    top = (hierarchy[0][:, 3] < 0).tolist()
+    min_len = int(MIN_BOUNDARY_PX)
+    kept = [c for c, is_top in zip(contours, top, strict=True) if is_top and len(c) >= min_len]
+    if not kept:
         return _empty()
-    ell = _moment_ellipses(np.array(moments))
+    ell = _moment_ellipses(np.array([_moment_row(c) for c in kept]))
     keep = _size_ok(ell, max_extent)
-    # Broken rings: retry with the convex hull where the boundary is big enough but not an ellipse.
-    for i in np.nonzero(keep & (ell[:, 6] < HULL_RETRY_BELOW))[0].tolist():
-        hull = cv2.convexHull(kept[i])
-        m = cv2.moments(hull)
-        row = _moment_ellipses(
-            np.array([[m["m00"], m["m10"], m["m01"], m["mu20"], m["mu11"], m["mu02"]]])
-        )[0]
-        if row[5] > 0 and _on_ellipse(kept[i], row) >= HULL_MIN_ON_ELLIPSE:
-            row[6] = 1.0  # the hull's own ellipticity says nothing; the point test passed
-            ell[i] = row
+    retry = np.nonzero(
+        keep & (ell[:, 6] < HULL_RETRY_BELOW) & (2.0 * ell[:, 2] >= min_hull_extent)
+    )[0]
+    if retry.size:
+        # Broken rings: the convex hull's ellipse, accepted where the boundary hugs its outer part.
+        hull = _moment_ellipses(np.array([_moment_row(cv2.convexHull(kept[i])) for i in retry]))
+        frac = _on_ellipse([kept[i] for i in retry.tolist()], hull)
+        good = (hull[:, 5] > 0) & (frac >= HULL_MIN_ON_ELLIPSE)
+        hull[:, 6] = 1.0  # the hull's own ellipticity says nothing; the point test passed
+        ell[retry[good]] = hull[good]
     keep &= _size_ok(ell, max_extent)
     ell = ell[keep]
     return Boundaries(ell[:, 0:2], ell[:, 2:4], ell[:, 4], ell[:, 5], ell[:, 6])
+
+
+def _moment_row(contour: NDArray[np.int32]) -> tuple[float, ...]:
+    m = cv2.moments(contour)
+    return (m["m00"], m["m10"], m["m01"], m["mu20"], m["mu11"], m["mu02"])
 
 
 #: Boundaries less elliptical than this get the convex-hull retry.
@@ -154,14 +158,22 @@ def _size_ok(ell: NDArray[np.float64], max_extent: float) -> NDArray[np.bool_]:
     return (ell[:, 5] > 2.0) & (perimeter >= MIN_BOUNDARY_PX) & (2.0 * a <= max_extent)
 
 
-def _on_ellipse(contour: NDArray[np.int32], row: NDArray[np.float64]) -> float:
-    """Fraction of a boundary's points between 0.55 and 1.12 times the ellipse ``row``'s radius."""
-    pts = contour.reshape(-1, 2).astype(np.float64) - row[:2]
-    c, s = np.cos(row[4]), np.sin(row[4])
-    x = (pts[:, 0] * c + pts[:, 1] * s) / row[2]
-    y = (-pts[:, 0] * s + pts[:, 1] * c) / row[3]
+def _on_ellipse(
+    contours: list[NDArray[np.int32]], rows: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """For each boundary, the fraction of its points between 0.55 and 1.12 times the radius of
+    its ellipse ``rows[i]`` (vectorised over all points of all boundaries)."""
+    counts = np.array([len(c) for c in contours])
+    pts = np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.float64)
+    idx = np.repeat(np.arange(len(contours)), counts)
+    r = rows[idx]
+    d = pts - r[:, :2]
+    c, s = np.cos(r[:, 4]), np.sin(r[:, 4])
+    x = (d[:, 0] * c + d[:, 1] * s) / r[:, 2]
+    y = (-d[:, 0] * s + d[:, 1] * c) / r[:, 3]
     rho = np.sqrt(x * x + y * y)
-    return float(np.mean((rho > 0.55) & (rho < 1.12)))
+    inside = ((rho > 0.55) & (rho < 1.12)).astype(np.float64)
+    return np.bincount(idx, weights=inside, minlength=len(contours)) / np.maximum(counts, 1)
 
 
 def _empty() -> Boundaries:

@@ -41,6 +41,9 @@ MIN_OUTER_DIAMETER_PX = 18.0
 #: Step 3's conservative shape tests on a boundary's moment ellipse: area over ellipse area, and
 #: minor over major axis (0.15 is a circle slanted 81 deg).
 MIN_ELLIPTICITY = 0.85
+#: Candidates that look like fiducials but read at most this far from a code get their pose
+#: ellipse fitted and are read again (small fiducials' coarse ellipses are poor).
+RETRY_MAX_DISTANCE = 2
 MIN_ASPECT = 0.15
 
 
@@ -188,7 +191,9 @@ def detect_grey(
         _to_uint8(grey, full_scale), window=config.threshold_window, t=config.threshold_t
     )
     max_d = config.max_diameter_px if config.max_diameter_px is not None else float(min(h, w))
-    bounds = outer_boundaries(binary, max_extent=max_d)
+    bounds = outer_boundaries(
+        binary, max_extent=max_d, min_hull_extent=0.9 * config.min_diameter_px
+    )
     found: list[FiducialDetection] = []
     designs = (RING, DOT) if config.design == "any" else (DESIGNS[config.design],)
     for design in designs:
@@ -230,7 +235,9 @@ def _finish(
         grey, full_scale, design, cands.centre, cands.axes, cands.angle, cands.drift, reader
     )
     noise = _noise_std(grey)
-    retry = np.nonzero(first.consistent & ~first.accepted)[0]
+    retry = np.nonzero(first.consistent & ~first.accepted & (first.nearest <= RETRY_MAX_DISTANCE))[
+        0
+    ]
     if retry.size:
         # Second chance for candidates that look like fiducials but whose code did not read:
         # small boundaries give poor coarse ellipses, so fit the pose circle and read again.
@@ -336,8 +343,19 @@ def _drift(fits: tuple[Ellipse, ...], r0: float) -> NDArray[np.float64]:
 
 
 def _noise_std(grey: NDArray[np.generic]) -> float:
-    """Image noise for the ellipse covariances, estimated once per image."""
-    return float(estimate_noise(grey))
+    """Image noise for the ellipse covariances, estimated once per image.
+
+    Large images are sampled in nine 128 x 128 tiles (the estimator is a robust median, and
+    the noise is stationary), which keeps this to a millisecond on a full frame.
+    """
+    h, w = grey.shape
+    tile = 128
+    if h * w <= 9 * tile * tile:
+        return float(estimate_noise(grey))
+    vs = np.linspace(0, h - tile, 3).astype(int)
+    us = np.linspace(0, w - tile, 3).astype(int)
+    tiles = [grey[v : v + tile, u : u + tile] for v in vs for u in us]
+    return float(estimate_noise(np.vstack(tiles)))
 
 
 def _detection(
@@ -356,22 +374,22 @@ def _detection(
 
 
 def _deduplicate(found: list[FiducialDetection]) -> list[FiducialDetection]:
-    """Drop detections inside a bigger one (a ring's central dot and track read as a ``dot``
-    fiducial) and repeated detections of one fiducial."""
-    order = sorted(found, key=lambda d: -d.pose_ellipse.semi_major / d.pose_ellipse.radius)
-    kept: list[FiducialDetection] = []
-    for det in order:
-        u, v = det.center_px
-        inside = False
-        for big in kept:
-            e = big.pose_ellipse
-            conic = e.conic()
-            # Any detection centred inside a kept fiducial's outer boundary is the same object.
-            r_out = 1.0 / e.radius  # the outer printed radius in units of the pose circle's
-            x = np.array([u, v, 1.0])
-            if x @ conic @ x < r_out**2 - 1.0:
-                inside = True
-                break
-        if not inside:
-            kept.append(det)
-    return kept
+    """Drop detections centred inside a bigger one (a ``ring`` fiducial's central dot and track
+    read as a ``dot`` fiducial) and repeated detections of one fiducial."""
+    if len(found) < 2:
+        return found
+    # Outer printed radius in pixels (major axis), biggest first.
+    outer = np.array([d.pose_ellipse.semi_major / d.pose_ellipse.radius for d in found])
+    centre = np.array([d.center_px for d in found])
+    order = np.argsort(-outer, kind="stable")
+    dist = np.hypot(*(centre[:, None, :] - centre[None, :, :]).transpose(2, 0, 1))
+    dropped = np.zeros(len(found), dtype=bool)
+    for i in order.tolist():
+        if dropped[i]:
+            continue
+        # Fiducials do not overlap, so any other centre within this one's outer radius is a
+        # second reading of the same object.
+        inside = dist[i] < outer[i]
+        inside[i] = False
+        dropped |= inside & (outer <= outer[i])
+    return [d for d, gone in zip(found, dropped.tolist(), strict=True) if not gone]

@@ -24,9 +24,6 @@ from .errors import DetectorError
 DEFAULT_T = 0.15
 #: Smallest default large-window side, pixels; larger than the biggest black region of a target.
 MIN_WINDOW = 101
-#: Default small-window side, pixels: about one small fiducial across, so that thin black rings
-#: are compared with their own white surround rather than with a darker background.
-SMALL_WINDOW = 31
 #: Default side of the closing that finds thin dark lines, pixels (0 disables it), and their
 #: relative darkness below the closing.
 THIN_PX = 5
@@ -49,10 +46,10 @@ def bradley_threshold(
 ) -> NDArray[np.uint8]:
     """Binary image of the dark regions: 255 where ``grey < (1 - t) * local mean``, else 0.
 
-    With several windows a pixel is black when it is dark relative to any of them: the small
-    window keeps thin, blurred black rings of small fiducials (whose large-window mean is pulled
-    down by the background), the large one keeps the middle of big black dots (which a small
-    window entirely inside the dot would call white).
+    With several windows a pixel is black when it is dark relative to any of them. A single large
+    window is the default: a window smaller than a black dot calls the dot's middle white, and
+    one smaller than a fiducial's white paper turns the background around the paper into a halo
+    of noise specks (each one a boundary to trace).
 
     Beyond Bradley & Roth, a pixel is also black when it lies on a dark line thinner than
     ``thin_px``: darker by ``thin_t`` than the image's morphological closing (a "black-hat"
@@ -66,7 +63,7 @@ def bradley_threshold(
         Grey image indexed ``[v, u]``.
     window : int or tuple of int, optional
         Side(s) of the square averaging windows in pixels (made odd); default
-        ``(SMALL_WINDOW, default_window(grey.shape))``.
+        ``default_window(grey.shape)``.
     t : float
         Relative darkness in ``(0, 1)`` below the local mean that makes a pixel black.
     thin_px : int
@@ -89,7 +86,7 @@ def bradley_threshold(
     if not 0.0 < t < 1.0:
         raise DetectorError(f"threshold t must be in (0, 1), got {t}")
     if window is None:
-        sides: tuple[int, ...] = (SMALL_WINDOW, default_window(grey.shape))
+        sides: tuple[int, ...] = (default_window(grey.shape),)
     elif isinstance(window, int | np.integer):
         sides = (int(window),)
     else:

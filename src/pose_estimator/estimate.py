@@ -53,6 +53,11 @@ F64 = NDArray[np.float64]
 #: Standard deviation (pixels) assumed for each ellipse parameter when a fit reports no usable
 #: covariance; the pose covariance is then only nominal.
 DEFAULT_SIGMA_PX = 0.05
+#: Systematic floor (pixels, per ellipse parameter) added to the inner circles' fit covariances:
+#: the coding track next to them and toner spread bias inner edges by several hundredths of a pixel at small sizes,
+#: which a noise-only covariance does not cover. They still resolve the ambiguity and refine the
+#: normal, without pulling the depth.
+INNER_FLOOR_PX = 0.05
 _UNDISTORT_SAMPLES = 32
 _GN_ITERATIONS = 1
 
@@ -202,7 +207,14 @@ def ellipse_observation(ellipse: Ellipse) -> tuple[F64, F64]:
 
 
 def estimate_arrays(
-    obs: F64, cov: F64, radius_mm: F64, camera: CameraModel, *, iterations: int = _GN_ITERATIONS
+    obs: F64,
+    cov: F64,
+    radius_mm: F64,
+    camera: CameraModel,
+    *,
+    iterations: int = _GN_ITERATIONS,
+    free_scale: bool = True,
+    inner_floor_px: float = INNER_FLOOR_PX,
 ) -> PoseArrays:
     """Vectorised core of :func:`estimate`.
 
@@ -218,6 +230,12 @@ def estimate_arrays(
     camera : CameraModel
     iterations : int
         Gauss-Newton steps from the closed-form solution (the problem is nearly linear there).
+    free_scale : bool
+        Estimate the inner circles' radii instead of trusting their printed values: depth then
+        comes from the pose circle alone, immune to size biases of inner edges (see
+        :func:`_gauss_newton`); False uses every circle's printed radius.
+    inner_floor_px : float
+        Systematic standard deviation added to each inner circle's parameters, pixels.
 
     Returns
     -------
@@ -243,6 +261,14 @@ def estimate_arrays(
     # Work in normalised coordinates (K = I): an affine change of the observations.
     obs_n, W = _to_normalised(safe_obs, _information(cov), K)
     W = np.where(present[..., None, None], W, 0.0)
+    # The ambiguity test uses the fits' own covariances (the inner circles' geometry relative to
+    # the pose circle is what tells the candidates apart); the refinement adds the systematic
+    # floor to the inner circles, as a scalar deflation (sigma^2 / (sigma^2 + floor^2)).
+    W_fit = W
+    if kc > 1 and inner_floor_px > 0:
+        var = np.trace(cov[:, 1:], axis1=-2, axis2=-1) / 5.0
+        W_fit = W.copy()
+        W_fit[:, 1:] *= (var / (var + inner_floor_px**2))[..., None, None]
     # Closed form from the pose circle (index 0), both candidates.
     centers, normals = circle_pose(conic_from_params(obs_n[:, 0]), safe_r[:, 0])  # (N, 2, 3)
     valid = present[:, 0] & np.all(np.isfinite(centers), axis=(1, 2))
@@ -256,10 +282,10 @@ def estimate_arrays(
     best = np.where(w0 >= 0.5, 0, 1)
     idx = np.arange(n)
     # Joint refinement of the better candidate over all circles.
-    c_best, normal, info, chi2 = _gauss_newton(
-        obs_n, W, safe_r, centers[idx, best], normals[idx, best], iterations
+    c_best, normal, inv_info, chi2 = _gauss_newton(
+        obs_n, W_fit, safe_r, centers[idx, best], normals[idx, best], iterations, free_scale
     )
-    cov_best = _position_covariance(info)
+    cov_best = 0.5 * (inv_info[:, :3, :3] + np.swapaxes(inv_info[:, :3, :3], -1, -2))
     c = centers.copy()
     c[idx, best] = c_best
     w = np.stack([w0, 1.0 - w0], axis=1)
@@ -399,58 +425,78 @@ def _inv(A: F64) -> F64:
 
 
 def _gauss_newton(
-    obs: F64, W: F64, radius: F64, center: F64, normal: F64, iterations: int
+    obs: F64,
+    W: F64,
+    radius: F64,
+    center: F64,
+    normal: F64,
+    iterations: int,
+    free_scale: bool = True,
 ) -> tuple[F64, F64, F64, F64]:
-    """Refine circle centres and normals (``(..., 3)``) against all circles of each fiducial.
+    """Refine circle centres and normals (``(N, 3)``) against all circles of each fiducial.
 
-    ``obs`` ``(..., K, 5)`` and ``W`` ``(..., K, 5, 5)`` (inverse covariances) are in normalised
-    coordinates, ``radius`` ``(..., K)``. Returns centres, normals, the 5x5 information matrices
-    (centre x, y, z, then two normal angles in the final tangent basis) and the final chi-square.
+    ``obs`` ``(N, K, 5)`` and ``W`` ``(N, K, 5, 5)`` (inverse covariances) are in normalised
+    coordinates, ``radius`` ``(N, K)``. With ``free_scale`` the radii of circles ``1..K-1`` are
+    nuisance parameters (their scale relative to the printed value is estimated): they still fix the
+    centre's image and the normal, but depth comes from the pose circle alone, so a size bias of
+    the inner edges (toner spread, blur of a nearby track) cannot leak into z. ``iterations >= 1``.
+
+    Returns centres, normals, the inverse information matrices (their top-left 5x5: centre x, y, z,
+    then two normal angles in the last tangent basis; the covariance of the estimate) and the
+    final chi-square.
     """
     c = center.copy()
     n = normal.copy()
-    info = np.zeros(c.shape + (5,))[..., :5, :]
+    rad = radius.copy()
+    kc = radius.shape[-1]
+    extra = kc - 1 if free_scale else 0
+    npar = 5 + extra
+    inv_info = np.zeros(c.shape[:-1] + (npar, npar))
     for _ in range(iterations):
         e1, e2 = _basis(n)
-        # The base pose and five perturbed ones (forward differences: steps far below the noise,
-        # far above round-off), evaluated in one vectorised call.
+        # The base pose and perturbed ones (forward differences: steps far below the noise, far
+        # above round-off), evaluated in one vectorised call; the last one scales circles 1..K-1.
         h = 1e-6 * c[..., 2]
         da = 1e-6
-        cs = np.broadcast_to(c, (6, *c.shape)).copy()
-        ns = np.broadcast_to(n, (6, *n.shape)).copy()
+        m = 7 if extra else 6
+        cs = np.broadcast_to(c, (m, *c.shape)).copy()
+        ns = np.broadcast_to(n, (m, *n.shape)).copy()
+        rs = np.broadcast_to(rad, (m, *rad.shape)).copy()
         for j in range(3):
             cs[1 + j, ..., j] += h
         ns[4] += da * e1
         ns[5] += da * e2
-        ns[4:] /= np.sqrt(np.sum(ns[4:] * ns[4:], axis=-1))[..., None]
-        pred = circle_params(cs[..., None, :], ns[..., None, :], radius)  # (6, ..., K, 5)
+        ns[4:6] /= np.sqrt(np.sum(ns[4:6] * ns[4:6], axis=-1))[..., None]
+        if extra:
+            rs[6, ..., 1:] *= 1.0 + da
+        pred = circle_params(cs[..., None, :], ns[..., None, :], rs)  # (m, N, K, 5)
         base = pred[0]
         steps = np.stack([h, h, h, np.full_like(h, da), np.full_like(h, da)])
-        J = np.moveaxis((pred[1:] - base) / steps[..., None, None], 0, -1)  # (..., K, 5, 5)
+        J = np.zeros(base.shape + (npar,))
+        J[..., :5] = np.moveaxis((pred[1:6] - base) / steps[..., None, None], 0, -1)
+        if extra:
+            ds = (pred[6] - base) / da  # (N, K, 5): each circle's own scale column
+            for k in range(1, kc):
+                J[..., k, :, 4 + k] = ds[..., k, :]
         J = np.where(np.isfinite(J), J, 0.0)
         res = obs - base
         res = np.where(np.isfinite(res), res, 0.0)
         JtW = np.swapaxes(J, -1, -2) @ W
         info = np.sum(JtW @ J, axis=-3)
         grad = np.sum(JtW @ res[..., None], axis=-3)
-        # A tiny damping only guards against singular steps.
-        damp = 1e-9 * np.trace(info, axis1=-2, axis2=-1)[..., None, None] * np.eye(5)
-        delta = (_inv(info + damp) @ grad)[..., 0]
+        # A tiny damping only guards against singular steps (e.g. a missing inner circle).
+        damp = (1e-12 * np.trace(info, axis1=-2, axis2=-1) + 1e-300)[..., None, None] * np.eye(npar)
+        inv_info = _inv(info + damp)
+        delta = (inv_info @ grad)[..., 0]
         delta = np.where(np.isfinite(delta), delta, 0.0)
         c = c + delta[..., :3]
         n = n + delta[..., 3:4] * e1 + delta[..., 4:5] * e2
         n /= np.sqrt(np.sum(n * n, axis=-1))[..., None]
+        if extra:
+            rad[..., 1:] *= 1.0 + delta[..., 5:]
     # The information of the last linearisation serves the final point: the step from it is far
     # below the scale on which the Jacobian changes.
-    res = obs - circle_params(c[..., None, :], n[..., None, :], radius)
+    res = obs - circle_params(c[..., None, :], n[..., None, :], rad)
     res = np.where(np.isfinite(res), res, 0.0)
     chi2 = _quadratic(res, W)
-    return c, n, info, chi2
-
-
-def _position_covariance(info: F64) -> F64:
-    """Position block of the inverse information matrix (``(..., 5, 5)`` -> ``(..., 3, 3)``)."""
-    damp = 1e-12 * np.trace(info, axis1=-2, axis2=-1)[..., None, None] * np.eye(5)
-    inv = _inv(info + damp)
-    out: F64 = inv[..., :3, :3]
-    return 0.5 * (out + np.swapaxes(out, -1, -2))
+    return c, n, inv_info, chi2

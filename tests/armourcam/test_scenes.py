@@ -113,6 +113,21 @@ def test_400_targets_on_a_full_frame_without_overlap() -> None:
     assert set(layout.clutter_kinds) == set(CLUTTER_KINDS)
 
 
+def test_layout_through_lens_distortion() -> None:
+    """With barrel distortion too, targets land where asked, inside the frame, apart."""
+    ideal = paper_camera(1200, 800)
+    cam = CameraModel(1200, 800, ideal.K, "plumb_bob", np.array([-0.4, 0.2, 1e-3, -1e-3, 0.0]))
+    layout = random_layout(cam, 40, 60.0, "ring", np.random.default_rng(8), 60.0, n_clutter=20)
+    assert _coverage(cam, layout).max() == 1
+    for t in layout.targets:
+        uv = _outline(cam, t.rotation, t.position_mm, MARGIN * t.diameter_mm / 2)
+        assert uv.min() >= 0 and uv[:, 0].max() <= 1199 and uv[:, 1].max() <= 799
+    scene = render(cam, layout.targets, clutter=layout.clutter)
+    for t in scene.truth:
+        u, v = np.rint(t.center_px).astype(int)
+        assert scene.image[v, u] < 60  # the central dot is where the truth says
+
+
 def test_layout_is_reproducible() -> None:
     """Same seed, same layout; another seed, another."""
     cam = paper_camera(1200, 800)

@@ -8,12 +8,11 @@ import math
 
 import numpy as np
 import pytest
+from matcher_synth import make_pose
 from scipy.optimize import linear_sum_assignment
 
 from displacement_matcher import MatcherError, cost_matrix, match
 from pose_estimator.types import FiducialPose
-
-from matcher_synth import make_pose
 
 
 def brute_force(cost: np.ndarray, unmatched: float) -> float:

@@ -226,9 +226,36 @@ def test_run_before_any_baseline_uses_the_frames_seen(rng: np.random.Generator) 
     s = make(baseline_frames=5)
     feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)  # too few for the auto baseline
     assert s.baseline is None
-    events = s.set_run_active(True, 1.0)
+    assert not of_type(s.set_run_active(True, 1.0), BaselineCaptured)
+    # A pre-run frame still in the pipeline when the start arrived joins the baseline ...
+    assert not s.add_frame(frame(truth0, rng), 0.9)
+    # ... and the first frame of the run itself (the scene moving) fuses it without joining.
+    events = s.add_frame(frame(truth0 + np.array([30.0, 0, 0]), rng), 1.5)
     (cap,) = of_type(events, BaselineCaptured)
-    assert cap.baseline.n_frames == 2
+    assert cap.baseline.n_frames == 3
+    got = np.sort(np.array([p.position_mm[0] for p in cap.baseline.poses]))
+    assert np.allclose(got, np.sort(truth0[:, 0]), atol=0.3)
+
+
+def test_next_run_before_settling_measures_the_last_run(rng: np.random.Generator) -> None:
+    truth0 = scene(16)
+    s = make(baseline_frames=2, settle_frames=3)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    truth1 = moved(truth0, [1], [6.0, 0, 0])
+    s.set_run_id("A")
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    feed(s, [frame(truth1, rng)], 2.5)  # one frame only, then the next run starts
+    s.set_run_id("B")
+    (done,) = of_type(s.set_run_active(True, 3.0), RunCompleted)
+    assert done.run.run_id == "A" and done.run.report["settled"] is False
+    d = disp_by_before(done.run.report, truth0)
+    assert np.linalg.norm(d[4] - [6.0, 0, 0]) < 0.5
+    assert s.phase == Phase.RUN_ACTIVE
+    s.set_run_active(False, 4.0)
+    (done_b,) = of_type(s.end_of_input(), RunCompleted)  # the bag ended while settling
+    assert done_b.run.run_id == "B" and done_b.run.report["frames_fused"] == 0
+    assert "error" in done_b.run.report
 
 
 def test_state_survives_a_restart(tmp_path: Path, rng: np.random.Generator) -> None:

@@ -1,0 +1,90 @@
+"""Speed of the pose estimator: 400 detections of one 3008x2000 frame, one thread.
+
+Detections come from exact image ellipses of 400 ring fiducials (random position over the frame,
+600-900 mm, slant 0-70 deg) perturbed as by a sub-pixel fit, so that only the pose stage is timed:
+``pose_estimator.estimate(detections, camera, 7.1)`` end to end (gathering the detections' ellipses
+into arrays included), and its vectorised core ``estimate_arrays`` alone, with an ideal lens and
+with plumb_bob distortion. Target: <= 5 ms for 400 detections.
+
+Run: ``.venv/bin/python -m benchmarks.pose_speed [--repeat 50]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from armourcam.render import Target, rotation_from_slant_tilt, target_truth
+from fiducial_detector.design import RING
+from fiducial_detector.types import Ellipse, FiducialDetection
+from pose_estimator import CameraModel, estimate, estimate_arrays
+from pose_estimator.conic_pose import axes_from_params, params_from_conic
+from pose_estimator.estimate import detections_to_arrays
+
+N = 400
+
+
+def detections(camera: CameraModel, rng: np.random.Generator) -> list[FiducialDetection]:
+    """400 ring detections with ellipses near their exact images and a plausible covariance."""
+    out = []
+    cov = np.diag([4e-6, 4e-6, 6e-6, 6e-6, 1e-5])
+    while len(out) < N:
+        z = rng.uniform(600.0, 900.0)
+        x = rng.uniform(-0.45, 0.45) * camera.width * z / camera.K[0, 0]
+        y = rng.uniform(-0.45, 0.45) * camera.height * z / camera.K[1, 1]
+        rot = rotation_from_slant_tilt(np.radians(rng.uniform(0, 70)), rng.uniform(0, 2 * np.pi))
+        truth = target_truth(camera, Target(len(out) % 66, "ring", 7.1, rot, np.array([x, y, z])))
+        ells = []
+        for circle, conic in zip(RING.circles, truth.conics, strict=True):
+            u, v, a, b, ang = axes_from_params(params_from_conic(conic))
+            u, v, a, b = np.array([u, v, a, b]) + rng.normal(0.0, 0.002, 4)
+            ells.append(Ellipse((u, v), max(a, b + 1e-6), b, ang, cov, circle.radius))
+        out.append(FiducialDetection(len(out) % 66, 0, ells[0].center_px, tuple(ells), 0.7, "ring"))
+    return out
+
+
+def best_ms(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
+    """Best and median wall time of ``fn`` over ``repeat`` runs, milliseconds."""
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * min(times), 1e3 * float(np.median(times))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--repeat", type=int, default=50)
+    args = parser.parse_args(argv)
+    ideal = CameraModel.ideal(3008, 2000, 5769.0)
+    lens = CameraModel(3008, 2000, ideal.K, "plumb_bob", np.array([-0.12, 0.08, 3e-4, -2e-4, 0.0]))
+    rng = np.random.default_rng(11)
+    dets = detections(ideal, rng)
+    obs, cov, radius = detections_to_arrays(dets, 3.55)
+    estimate(dets, ideal, 7.1)  # warm-up
+    print(f"# pose_speed: {N} ring detections (3 circles each), best / median of {args.repeat} runs")
+    print("stage                                   | best ms | median ms | target")
+    rows = [
+        ("estimate(), ideal lens", lambda: estimate(dets, ideal, 7.1)),
+        ("estimate_arrays(), ideal lens", lambda: estimate_arrays(obs, cov, radius, ideal)),
+        ("detections_to_arrays()", lambda: detections_to_arrays(dets, 3.55)),
+        ("estimate(), plumb_bob lens", lambda: estimate(dets, lens, 7.1)),
+    ]
+    ok = True
+    for name, fn in rows:
+        best, med = best_ms(fn, args.repeat)
+        target = "<= 5 ms" if name == "estimate(), ideal lens" else ""
+        if target:
+            ok = best <= 5.0
+        print(f"{name:39s} | {best:7.2f} | {med:9.2f} | {target}")
+    print(f"per detection (estimate, ideal lens): {best_ms(rows[0][1], 10)[0] / N * 1e3:.1f} us")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,183 @@
+"""Unit maps, grouping and per-unit rigid motion against ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from armourcam.field import dolos_geometry, make_field
+from displacement_matcher import MatcherError, match
+from displacement_matcher.rigid import kabsch, rigid_fit
+from displacement_matcher.units import (
+    UnitMap,
+    UnitSpec,
+    group_fiducials,
+    load_unit_map,
+    match_units,
+    parse_unit_map,
+    unit_motions,
+)
+from pose_estimator.types import FiducialPose
+
+
+def _rot(axis: list[float], deg: float) -> np.ndarray:
+    import cv2
+
+    a = np.asarray(axis, dtype=np.float64)
+    r, _ = cv2.Rodrigues(a / np.linalg.norm(a) * np.radians(deg))
+    return np.asarray(r)
+
+
+def _template() -> UnitMap:
+    g = dolos_geometry()
+    spec = UnitSpec(
+        "template",
+        g.codes,
+        {c: g.positions_mm[k] for k, c in enumerate(g.codes)},
+        {c: g.normals[k] for k, c in enumerate(g.codes)},
+    )
+    return UnitMap((), spec, 40.0)
+
+
+@pytest.mark.parametrize("deg", [0.0, 5.0, 25.0, 60.0])
+def test_kabsch_and_rigid_fit_recover_motion(deg: float) -> None:
+    """Weighted Kabsch (points) and the normal-aided fit recover a known rigid motion."""
+    rng = np.random.default_rng(1234)
+    R = _rot([1.0, 2.0, -0.5], deg)
+    t = np.array([3.0, -7.0, 11.0])
+    src = rng.normal(0, 15, (5, 3))
+    dst = src @ R.T + t
+    R1, t1 = kabsch(src, dst, np.ones(5))
+    np.testing.assert_allclose(R1, R, atol=1e-9)
+    np.testing.assert_allclose(t1, t, atol=1e-9)
+    # Two points plus their normals fix the rotation too.
+    n = rng.normal(size=(2, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    R2, t2 = rigid_fit(src[:2], dst[:2], np.ones(2), n, n @ R.T)
+    np.testing.assert_allclose(R2, R, atol=1e-9)
+    np.testing.assert_allclose(t2, t, atol=1e-9)
+
+
+def test_unit_motion_matches_ground_truth_on_a_field() -> None:
+    """Per-unit displacement (at the reported reference point) agrees with the truth."""
+    field = make_field(60, seed=3, moved_fraction=0.2, overturned_fraction=0.0, hidden_fraction=0)
+    rng = np.random.default_rng(7)
+    base = field.before.poses(rng, sigma_xy_mm=0.05, sigma_z_mm=0.3)
+    cur = field.after.poses(rng, sigma_xy_mm=0.05, sigma_z_mm=0.3)
+    bid = field.before.visible_ids
+    an = match_units(base, cur, unit_map=_template(), gate_mm=50.0)
+    measured = 0
+    for u in an.units:
+        owners = field.before.unit[bid[list(u.baseline_indices)]]
+        assert np.all(owners == owners[0]), f"{u.unit} mixes units {set(owners.tolist())}"
+        if u.method == "none":
+            continue
+        truth = field.displacement_at(int(owners[0]), u.reference_before_mm)
+        tol = 1.5 if u.method == "rigid" else 6.0  # translation-only ignores the rotation
+        np.testing.assert_allclose(u.translation_mm, truth, atol=tol, err_msg=u.unit)
+        if not field.moved[owners[0]]:
+            assert u.distance_mm < 1.0
+        measured += 1
+    assert measured >= 55
+
+
+def test_overturned_unit_is_flagged() -> None:
+    """Fiducials seen before face away after, the opposite face shows: overturned."""
+    g = dolos_geometry()
+    umap = _template()
+    R0 = np.diag([1.0, -1.0, -1.0])  # local z towards the camera
+    c0 = np.array([0.0, 0.0, 800.0])
+    flip = _rot([1.0, 0.0, 0.0], 180.0) @ R0 if False else R0 @ _rot([1.0, 0.0, 0.0], 180.0)
+    c1 = c0 + np.array([8.0, 3.0, 0.0])
+
+    def poses(R: np.ndarray, c: np.ndarray) -> list[FiducialPose]:
+        out = []
+        for k, code in enumerate(g.codes):
+            p = c + R @ g.positions_mm[k]
+            n = R @ g.normals[k]
+            if n @ (-p / np.linalg.norm(p)) > 0.3:
+                out.append(FiducialPose(code, p, n, np.eye(3) * 0.01))
+        return out
+
+    before, after = poses(R0, c0), poses(flip, c1)
+    assert {p.code for p in before} == {3, 17, 29} and {p.code for p in after} == {41}
+    an = match_units(before, after, unit_map=umap, gate_mm=50.0)
+    assert len(an.units) == 1 and an.units[0].overturned
+    # A still unit is not.
+    an2 = match_units(before, poses(R0, c0), unit_map=umap, gate_mm=50.0)
+    assert not an2.units[0].overturned and an2.units[0].distance_mm < 1e-6
+
+
+def test_grouping_separates_interlocked_units() -> None:
+    """With the template's positions and normals every group is one true unit."""
+    field = make_field(120, seed=5)
+    poses = field.before.poses(np.random.default_rng(2))
+    groups = group_fiducials(poses, span_mm=40.0, template=_template().template)
+    owners = field.before.unit[field.before.visible_ids]
+    assert sum(len(g) for g in groups) == len(poses)
+    pure = sum(len(set(owners[g].tolist())) == 1 for g in groups)
+    assert pure == len(groups)
+    assert len(groups) <= len(set(owners.tolist())) + 3
+
+
+def test_explicit_unit_map_and_unknown_codes(tmp_path: pytest.TempPathFactory) -> None:
+    """Explicit units by code; unmapped codes reported as unassigned; unseen units reported."""
+    path = tmp_path / "units.yaml"  # type: ignore[operator]
+    path.write_text("units:\n  A: {codes: [1, 2]}\n  B: {codes: [5]}\n  C: {codes: [9]}\n")
+    umap = load_unit_map(path)
+    base = [
+        FiducialPose(1, np.array([0.0, 0, 800]), np.array([0, 0, -1.0]), np.eye(3) * 0.01),
+        FiducialPose(2, np.array([20.0, 0, 800]), np.array([0, 0, -1.0]), np.eye(3) * 0.01),
+        FiducialPose(5, np.array([90.0, 0, 800]), np.array([0, 0, -1.0]), np.eye(3) * 0.01),
+        FiducialPose(7, np.array([150.0, 0, 800]), np.array([0, 0, -1.0]), np.eye(3) * 0.01),
+    ]
+    cur = [
+        FiducialPose(p.code, p.position_mm + [2.0, 0, 0], p.normal, p.covariance_mm2)
+        for p in base[:2]
+    ] + [base[2]]
+    units, unassigned = unit_motions(match(base, cur), unit_map=umap)
+    by = {u.unit: u for u in units}
+    np.testing.assert_allclose(by["A"].translation_mm, [2.0, 0, 0], atol=1e-9)
+    assert by["B"].distance_mm == pytest.approx(0.0)
+    assert by["C"].status == "unseen" and not by["C"].baseline_indices
+    assert unassigned == (3,)
+
+
+@pytest.mark.parametrize(
+    ("doc", "message"),
+    [
+        ({"units": {"A": {"codes": [999]}}}, "unknown code 999"),
+        ({"units": {"A": {"codes": [1]}, "B": {"codes": [1]}}}, "code 1 is on units"),
+        ({"units": {"A": {"codes": "x"}}}, "codes must be a non-empty list"),
+        ({"units": {"A": {"codes": [1], "positions_mm": {2: [0, 0, 0]}}}}, "not in"),
+        ({"template": {"codes": [1, 2], "normals": {1: [0, 0, 0]}}}, "zero or not finite"),
+        ({"units": {}, "template": {"codes": [1]}}, "exactly one of"),
+        ([1, 2], "must be a mapping"),
+        ({"units": {"A": {"codes": [1], "colour": "red"}}}, "unknown keys"),
+    ],
+)
+def test_bad_unit_maps_raise_clear_errors(doc: object, message: str) -> None:
+    """Malformed unit maps name what is wrong."""
+    with pytest.raises(MatcherError, match=message):
+        parse_unit_map(doc)
+
+
+def test_unreadable_unit_map_file(tmp_path: pytest.TempPathFactory) -> None:
+    """A missing or non-YAML file raises MatcherError naming the file."""
+    with pytest.raises(MatcherError, match="cannot read unit map"):
+        load_unit_map(tmp_path / "missing.yaml")  # type: ignore[operator]
+    bad = tmp_path / "bad.yaml"  # type: ignore[operator]
+    bad.write_text("units: [\n")
+    with pytest.raises(MatcherError, match="cannot read unit map"):
+        load_unit_map(bad)
+
+
+def test_units_with_empty_and_nan_inputs() -> None:
+    """Empty sets and NaN poses give empty or lost units, never a crash."""
+    assert match_units([], []).units == ()
+    nan = FiducialPose(3, np.full(3, np.nan), np.array([0, 0, -1.0]), np.eye(3))
+    ok = FiducialPose(3, np.array([0.0, 0, 800]), np.array([0, 0, -1.0]), np.eye(3) * 0.01)
+    an = match_units([nan, ok], [])
+    assert [u.status for u in an.units] == ["lost"]
+    assert an.units[0].baseline_indices == (1,)
+    assert [r.index for r in an.result.rejected] == [0]
