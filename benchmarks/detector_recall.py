@@ -100,8 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     cv2.setNumThreads(1)
     slants = (0.0, 30.0, 50.0, 60.0, 70.0, 80.0) if args.quick else SLANTS
-    bases = args.bases or (3 if args.quick else 10)
-    noises = args.noises or (1 if args.quick else 5)
+    bases = args.bases or (3 if args.quick else 6)
+    noises = args.noises or (1 if args.quick else 4)
     rng = np.random.default_rng(args.seed)
     # hits[design, size, slant, degradation] = [found, trials, wrong]
     hits: dict[tuple[str, int, float, int], list[int]] = defaultdict(lambda: [0, 0, 0])
@@ -113,7 +113,9 @@ def main(argv: list[str] | None = None) -> int:
                     base = render_base(design, size, slant, rng)
                     for k, (blur, noise) in enumerate(DEGRADATIONS):
                         for _ in range(noises):
-                            ok, wrong = score(degrade(base.image, blur, noise, rng), base.truth, size)
+                            ok, wrong = score(
+                                degrade(base.image, blur, noise, rng), base.truth, size
+                            )
                             cell = hits[design, size, slant, k]
                             cell[0] += ok
                             cell[1] += 1

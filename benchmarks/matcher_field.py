@@ -34,22 +34,22 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from armourcam.field import Field, make_field
+from armourcam.field import Field, FieldState, make_field
 from displacement_matcher import match
 from displacement_matcher.damage import assess, thresholds
+from displacement_matcher.refine import match_units
+from displacement_matcher.rigid import kabsch
 from displacement_matcher.types import Displacement, MatchResult
 from displacement_matcher.units import (
     UnitMap,
     UnitSpec,
     assign_units,
-    kabsch,
-    match_units,
     unit_motions,
 )
 from pose_estimator.types import FiducialPose
@@ -181,15 +181,15 @@ def evaluate(
     units, summary = assess(units, limits)
 
     # Fiducial correspondence.
-    partner = {int(f): k for k, f in enumerate(cid.tolist())}
-    bpos = field.before.position_mm[bid]
+    partner = {int(f): k for k, f in enumerate(cid.tolist()) if f >= 0}
+    bpos = np.array([p.position_mm for p in base]).reshape(-1, 3)
     nn = cKDTree(bpos).query(bpos, 2)[0][:, 1] if len(bpos) > 1 else np.full(len(bpos), np.inf)
     right = total = near_right = near_total = 0
     for d in result.displacements:
         if d.baseline_index is None:
             continue
         f = int(bid[d.baseline_index])
-        truth = partner.get(f)
+        truth = partner.get(f) if f >= 0 else None
         ok = truth == d.current_index
         total += 1
         right += ok
@@ -207,9 +207,12 @@ def evaluate(
     for u in units:
         if not u.baseline_indices:
             continue
-        owners = field.before.unit[bid[list(u.baseline_indices)]]
+        ids = bid[list(u.baseline_indices)]
+        owners = field.before.unit[ids[ids >= 0]]
+        if len(owners) == 0:
+            continue
         tu = int(np.bincount(owners).argmax())
-        pure = bool(np.all(owners == tu))
+        pure = bool(np.all(owners == tu)) and len(owners) == len(ids)
         is_disp = u.unit in summary.displaced_ids
         if is_disp:
             reported.add(tu)
@@ -280,7 +283,25 @@ def poses_e2e(field: Field, seed: int, diameter_mm: float) -> tuple[list, list, 
     return out[0], out[2], out[1], out[3]
 
 
-METHODS: dict[str, Callable[..., object]] = {}
+def pose_quality(state: FieldState, poses: Sequence[FiducialPose], ids: NDArray) -> str:
+    """Depth error along the ray against the claimed sigma, and normal error, of tied poses."""
+    ok = np.flatnonzero(ids >= 0)
+    if len(ok) == 0:
+        return "no pose tied to the truth"
+    t = state.position_mm[ids[ok]]
+    ray = t / np.linalg.norm(t, axis=1, keepdims=True)
+    p = np.array([poses[k].position_mm for k in ok])
+    cov = np.array([poses[k].covariance_mm2 for k in ok])
+    ez = np.abs(np.einsum("ki,ki->k", p - t, ray))
+    sz = np.sqrt(np.einsum("ki,kij,kj->k", ray, cov, ray))
+    n = np.array([poses[k].normal for k in ok])
+    ang = np.degrees(np.arccos(np.clip(np.einsum("ki,ki->k", n, state.normal[ids[ok]]), -1, 1)))
+    e50, e95 = np.percentile(ez, [50, 95])
+    a50, a95 = np.percentile(ang, [50, 95])
+    return (
+        f"depth error median {e50:.2f} / 95 % {e95:.2f} mm vs claimed sigma median "
+        f"{np.median(sz):.2f} mm; normal error median {a50:.1f} / 95 % {a95:.1f} deg"
+    )
 
 
 def main() -> None:
@@ -308,7 +329,8 @@ def main() -> None:
             base, cur, bid, cid = poses_e2e(field, seed, args.diameter_mm)
             print(
                 f"     e2e seed {seed}: poses before {len(base)} of {field.before.visible.sum()} "
-                f"visible, after {len(cur)} of {field.after.visible.sum()}"
+                f"visible, after {len(cur)} of {field.after.visible.sum()}; before: "
+                + pose_quality(field.before, base, np.asarray(bid))
             )
         for method in ("armourcam", "global", "nearest", "icp"):
             r = evaluate(field, base, cur, np.asarray(bid), np.asarray(cid), method)

@@ -30,7 +30,7 @@ N = 400
 
 def detections(camera: CameraModel, rng: np.random.Generator) -> list[FiducialDetection]:
     """400 ring detections with ellipses near their exact images and a plausible covariance."""
-    out = []
+    out: list[FiducialDetection] = []
     cov = np.diag([4e-6, 4e-6, 6e-6, 6e-6, 1e-5])
     while len(out) < N:
         z = rng.uniform(600.0, 900.0)
@@ -67,7 +67,9 @@ def main(argv: list[str] | None = None) -> int:
     dets = detections(ideal, rng)
     obs, cov, radius = detections_to_arrays(dets, 3.55)
     estimate(dets, ideal, 7.1)  # warm-up
-    print(f"# pose_speed: {N} ring detections (3 circles each), best / median of {args.repeat} runs")
+    print(
+        f"# pose_speed: {N} ring detections (3 circles each), best / median of {args.repeat} runs"
+    )
     print("stage                                   | best ms | median ms | target")
     rows = [
         ("estimate(), ideal lens", lambda: estimate(dets, ideal, 7.1)),

@@ -50,7 +50,10 @@ def positions(distance: float) -> dict[int, np.ndarray]:
 def read_paper() -> dict[int, dict[str, float]]:
     with PAPER_CSV.open() as fh:
         rows = [line for line in fh if not line.startswith("#")]
-    return {int(float(r["camera_distance_mm"])): {k: float(v) for k, v in r.items()} for r in csv.DictReader(rows)}
+    return {
+        int(float(r["camera_distance_mm"])): {k: float(v) for k, v in r.items()}
+        for r in csv.DictReader(rows)
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,7 +66,10 @@ def main(argv: list[str] | None = None) -> int:
     paper = read_paper()
     rng = np.random.default_rng(3)
     ok_all = True
-    print(f"# pose_table3: 3008x2000, f = {f_px:.1f} px, {args.images} images per distance, blur 0.5, noise 1 %")
+    print(
+        f"# pose_table3: 3008x2000, f = {f_px:.1f} px, {args.images} images per distance, "
+        "blur 0.5, noise 1 %"
+    )
     for design in args.designs.split(","):
         print()
         print(f"## {design} design (paper: its dot design, real / synthetic images)")
@@ -91,7 +97,12 @@ def main(argv: list[str] | None = None) -> int:
                 v1, v2, v3 = (poses[c].position_mm for c in CODES)
                 zd.append(abs(v1[2] - v3[2]))
                 cd.append(float(np.linalg.norm(v1 - v2)))
-                xy.append(max(float(np.max(np.abs(poses[c].position_mm[:2] - truth[c][:2]))) for c in CODES))
+                xy.append(
+                    max(
+                        float(np.max(np.abs(poses[c].position_mm[:2] - truth[c][:2])))
+                        for c in CODES
+                    )
+                )
             ref = paper.get(int(dist), {})
             if not zd:
                 print(f"{dist:4.0f} | no complete detections")
@@ -102,17 +113,22 @@ def main(argv: list[str] | None = None) -> int:
             c_ok = abs(cd_a.mean() - 10.0) <= 0.01
             ok_all &= z_ok and c_ok
             print(
-                f"{dist:4.0f} | {zd_a.mean():8.3f} {zd_a.std():6.3f} {np.max(np.abs(zd_a - 25)):7.3f} "
+                f"{dist:4.0f} | {zd_a.mean():8.3f} {zd_a.std():6.3f} "
+                f"{np.max(np.abs(zd_a - 25)):7.3f} "
                 f"{'ok' if z_ok else 'FAIL'} | {ref.get('z_real_mean', np.nan):6.3f} "
                 f"({ref.get('z_real_std', np.nan):.3f}) {ref.get('z_synth_mean', np.nan):6.3f} "
                 f"({ref.get('z_synth_std', np.nan):.3f}) | {cd_a.mean():9.4f} {cd_a.std():7.4f} "
                 f"{np.max(np.abs(cd_a - 10)):7.4f} {'ok' if c_ok else 'FAIL'} | "
                 f"{ref.get('xy_real_mean', np.nan):6.3f} ({ref.get('xy_real_std', np.nan):.4f}) "
-                f"{ref.get('xy_synth_mean', np.nan):6.3f} ({ref.get('xy_synth_std', np.nan):.4f}) | "
+                f"{ref.get('xy_synth_mean', np.nan):6.3f} "
+                f"({ref.get('xy_synth_std', np.nan):.4f}) | "
                 f"{max(xy):8.4f}       | {found}/{args.images}"
             )
     print()
-    print(f"targets (|mean z-dist - 25| <= 0.1 mm, |mean coplanar - 10| <= 0.01 mm): {'PASS' if ok_all else 'FAIL'}")
+    print(
+        "targets (|mean z-dist - 25| <= 0.1 mm, |mean coplanar - 10| <= 0.01 mm): "
+        f"{'PASS' if ok_all else 'FAIL'}"
+    )
     return 0 if ok_all else 1
 
 

@@ -2,8 +2,8 @@
 
 Protocol (the paper's, exactly): a camera of f = 6507 px; the fiducial (7.1 mm printed diameter)
 at 385 / 770 / 1027 / 1320 mm so that its outer diameter images to 120 / 60 / 45 / 35 px at zero
-slant; slant 0-89 deg in 1 deg steps; Gaussian blur 0.5 / 0.7 px, then additive Gaussian noise 1 / 2 %
-of the full range; 30 noise images per case. Each noise-free base image is rendered once per
+slant; slant 0-89 deg in 1 deg steps; Gaussian blur 0.5 / 0.7 px, then additive Gaussian noise
+1 / 2 % of the full range; 30 noise images per case. Each noise-free base image is rendered once per
 (design, size, slant) with :mod:`armourcam.render`, then blurred, and the 30 noisy copies are laid
 out as tiles of one mosaic (each tile its own camera: principal point at the tile's centre), so
 that the real detector (:func:`fiducial_detector.detect`) runs once per case; each detection is
@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import multiprocessing
 import sys
 import time
 from dataclasses import dataclass, field
@@ -96,7 +97,11 @@ def base_image(design: str, size_px: int, slant_deg: float) -> tuple[NDArray[np.
     z = F_PX * DIAMETER_MM / size_px
     cam = tile_camera(size_px)
     target = Target(
-        CODE, design, DIAMETER_MM, rotation_from_slant_tilt(np.radians(slant_deg)), np.array([0, 0, z])
+        CODE,
+        design,
+        DIAMETER_MM,
+        rotation_from_slant_tilt(np.radians(slant_deg)),
+        np.array([0, 0, z]),
     )
     scene = render(cam, [target], dtype=np.uint16)
     return scene.image.astype(np.float64) / 65535.0, z
@@ -121,7 +126,9 @@ def run_case(
     mosaic = np.tile(blurred, (rows, cols))
     # Tiles beyond n_images (last row) are plain background.
     for t in range(n_images, rows * cols):
-        mosaic[(t // cols) * h : (t // cols + 1) * h, (t % cols) * w : (t % cols + 1) * w] = BACKGROUND
+        mosaic[(t // cols) * h : (t // cols + 1) * h, (t % cols) * w : (t % cols + 1) * w] = (
+            BACKGROUND
+        )
     noisy = mosaic + rng.normal(0.0, noise, mosaic.shape)
     img = np.clip(np.rint(noisy * 255.0), 0, 255).astype(np.uint8)
     t0 = time.perf_counter()
@@ -135,7 +142,9 @@ def run_case(
         if d.code != CODE or tile >= n_images:
             stats.wrong += 1
             continue
-        off = np.hypot(d.center_px[0] - (c * w + (w - 1) / 2), d.center_px[1] - (r * h + (h - 1) / 2))
+        off = np.hypot(
+            d.center_px[0] - (c * w + (w - 1) / 2), d.center_px[1] - (r * h + (h - 1) / 2)
+        )
         if tile not in by_tile or off < by_tile[tile][0]:
             by_tile[tile] = (off, d)
     if not by_tile:
@@ -152,6 +161,40 @@ def run_case(
             stats.z.append(float(res.position_mm[i, 2]))
             stats.sigma.append(float(np.sqrt(res.covariance_mm2[i, 2, 2])))
     return stats, seconds
+
+
+def run_task(
+    task: tuple[str, int, list[int], int, bool],
+) -> tuple[
+    dict[tuple[str, int, float, float, int], CaseStats], dict[tuple[str, int, float], float], float
+]:
+    """All slants and degradations of one (design, size), and its CRB; seeded per task."""
+    design, size, slants, n_images, with_crb = task
+    rng = np.random.default_rng([20240601, size, DESIGNS.index(design)])
+    cases = {}
+    seconds = 0.0
+    t0 = time.perf_counter()
+    for slant in slants:
+        base, z = base_image(design, size, slant)
+        for blur, noise in DEGRADATIONS:
+            st, sec = run_case(design, size, base, z, blur, noise, n_images, rng)
+            seconds += sec
+            cases[(design, size, blur, noise, slant)] = st
+    crb = {}
+    if with_crb:
+        cam = tile_camera(size)
+        z = F_PX * DIAMETER_MM / size
+        for blur in (0.5, 0.7):
+            worst = 0.0
+            for slant in CRB_SLANTS:
+                rot = rotation_from_slant_tilt(np.radians(slant))
+                t = Target(CODE, design, DIAMETER_MM, rot, np.array([0.0, 0.0, z]))
+                worst = max(worst, depth_bound(cam, t, blur_sigma=blur, supersample=16).pose)
+            crb[(design, size, blur)] = worst
+    print(
+        f"  {design} {size} px done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True
+    )
+    return cases, crb, seconds
 
 
 def read_paper() -> dict[tuple[str, float, float, int], float]:
@@ -172,42 +215,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", default=",".join(map(str, SIZES)))
     parser.add_argument("--no-crb", action="store_true")
     parser.add_argument("--json", type=Path, help="write all per-case numbers here")
+    parser.add_argument(
+        "--jobs", type=int, default=1, help="worker processes (one per design/size)"
+    )
     args = parser.parse_args(argv)
     slants = [0, 20, 40, 60, 69] if args.quick else list(range(90))
     n_images = 10 if args.quick else 30
     designs = args.designs.split(",")
     sizes = [int(s) for s in args.sizes.split(",")]
     paper = read_paper()
-    rng = np.random.default_rng(20240601)
-    cases: dict[tuple[str, int, float, float, int], CaseStats] = {}
     t_start = time.perf_counter()
-    det_seconds = 0.0
-    for design in designs:
-        for size in sizes:
-            for slant in slants:
-                base, z = base_image(design, size, slant)
-                for blur, noise in DEGRADATIONS:
-                    st, sec = run_case(design, size, base, z, blur, noise, n_images, rng)
-                    det_seconds += sec
-                    cases[(design, size, blur, noise, slant)] = st
-            print(
-                f"  {design} {size} px done ({time.perf_counter() - t_start:.0f} s)",
-                file=sys.stderr,
-                flush=True,
-            )
+    tasks = [(d, s, slants, n_images, not args.no_crb) for d in designs for s in sizes]
+    cases: dict[tuple[str, int, float, float, int], CaseStats] = {}
     crb: dict[tuple[str, int, float], float] = {}
-    if not args.no_crb:
-        for design in designs:
-            for size in sizes:
-                cam = tile_camera(size)
-                z = F_PX * DIAMETER_MM / size
-                for blur in (0.5, 0.7):
-                    worst = 0.0
-                    for slant in CRB_SLANTS:
-                        rot = rotation_from_slant_tilt(np.radians(slant))
-                        t = Target(CODE, design, DIAMETER_MM, rot, np.array([0.0, 0.0, z]))
-                        worst = max(worst, depth_bound(cam, t, blur_sigma=blur, supersample=16).pose)
-                    crb[(design, size, blur)] = worst
+    det_seconds = 0.0
+    if args.jobs > 1:
+        with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
+            results = pool.map(run_task, tasks)
+    else:
+        results = [run_task(t) for t in tasks]
+    for part_cases, part_crb, sec in results:
+        cases.update(part_cases)
+        crb.update(part_crb)
+        det_seconds += sec
     total = time.perf_counter() - t_start
     print(
         f"# pose_tables: {'quick' if args.quick else 'full'} run, {len(slants)} slants x "
@@ -299,9 +329,7 @@ def report(
         print(f"## {design} design - detection and covariance honesty (slants < 70 deg)")
         print("size | detected   wrong | pred/emp std(z): median  min   max   within +-30 %")
         for size in sizes:
-            sts = [
-                cases[(design, size, b, n, s)] for b, n in DEGRADATIONS for s in table_slants
-            ]
+            sts = [cases[(design, size, b, n, s)] for b, n in DEGRADATIONS for s in table_slants]
             det = sum(s.detected for s in sts)
             tot = sum(s.n_images for s in sts)
             wrong = sum(s.wrong for s in sts)

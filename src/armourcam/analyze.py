@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from displacement_matcher.markers import displacement_records
 from displacement_matcher.session import (
     BaselineCaptured,
     Event,
@@ -176,6 +177,7 @@ def analyze_bag(
                     handle(session.capture_baseline(), m.timestamp_ns)
                 if progress is not None:
                     progress(k + 1, total)
+            handle(session.end_of_input(), bag.end_ns if hasattr(bag, "end_ns") else 0)
             if bag.truncation is not None:
                 result.notices.append(f"warn: {bag.truncation.describe()}")
     if session.baseline is not None:
@@ -226,7 +228,7 @@ def write_reports(out_dir: Path, bag_path: Path, result: AnalysisResult) -> None
 def _default(store: Any, msgtype: str) -> Any:
     """A rosbags message of ``msgtype`` with every field zero / empty (rosbags needs them all)."""
     import numpy as np
-    from rosbags.typesys.store import Nodetype  # type: ignore[attr-defined]
+    from rosbags.typesys.store import Nodetype
 
     cls = store.types[msgtype]
     _, fields = store.fielddefs[msgtype]
@@ -275,7 +277,7 @@ _RED = (0.95, 0.1, 0.1)
 
 
 def marker_array_rosbags(store: Any, header: Any, specs: tuple[MarkerSpec, ...]) -> Any:
-    """The node's MarkerArray (see ``displacement_matcher.node.marker_array``) as rosbags objects."""
+    """The node's MarkerArray (``displacement_matcher.node.marker_array``) as rosbags objects."""
     MARKER = "visualization_msgs/msg/Marker"
     point = store.types["geometry_msgs/msg/Point"]
     clear = _default(store, MARKER)
@@ -321,7 +323,7 @@ def write_run_outputs(out: bagio.BagWriter, run: RunRecord, t_ns: int, frame_id:
     out.write_records(
         "/armourcam/displacements",
         records.DISPLACEMENT,
-        records.rows_to_records(records.DISPLACEMENT, run.rows),
+        displacement_records(run.rows),
         t_ns,
         frame_id=frame_id,
         latched=True,

@@ -454,6 +454,7 @@ def replay_bag(
     restamp: bool = True,
     wait_subscribers: float = 10.0,
     match_grace_s: float = 1.0,
+    hall_gap_s: float = 0.3,
     settle_s: float = 0.0,
     progress: Callable[[int, int], None] | None = None,
     ros_args: Sequence[str] = (),
@@ -523,6 +524,10 @@ def replay_bag(
                 msg.header.stamp = _stamp_now(node, last_ns)
             replayer.publisher(topic, msgtype).publish(msg)
             published[topic] = published.get(topic, 0) + 1
+            if msgtype.startswith("std_msgs/") and as_fast_as_consumed:
+                # Hall events travel on their own topics: without recorded gaps, give each a
+                # head start so the matcher orders it against the frames around it.
+                time.sleep(hall_gap_s)
             if msgtype in IMAGE_TYPES:
                 frames += 1
                 if as_fast_as_consumed:

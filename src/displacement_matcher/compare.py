@@ -20,8 +20,9 @@ from pose_estimator.camera import CameraModel
 from pose_estimator.types import FiducialPose
 
 from .damage import assess
+from .refine import match_units
 from .types import DamageSummary, DamageThresholds, MatchResult, UnitMotion
-from .units import UnitMap, match_units
+from .units import UnitMap
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -76,6 +76,16 @@ def displacement_rows(
     return rows
 
 
+def displacement_records(rows: Sequence[dict[str, Any]]) -> Any:
+    """``DisplacementRecord`` structured array of ``rows`` (an empty array for no rows:
+    ``records.rows_to_records`` cannot infer the array fields' shapes from zero rows)."""
+    from armourcam import records
+
+    if not rows:
+        return records.layout(records.DISPLACEMENT).empty(0)
+    return records.rows_to_records(records.DISPLACEMENT, rows)
+
+
 def arrow_specs(displacements: Sequence[Displacement]) -> list[MarkerSpec]:
     """Arrows baseline -> current for every matched pair (green same-code, red cross-code)."""
     out: list[MarkerSpec] = []

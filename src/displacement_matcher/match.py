@@ -40,7 +40,7 @@ from pose_estimator.types import FiducialPose
 from .errors import MatcherError
 from .types import Displacement, Label, MatchParams, MatchResult, RejectedPose
 
-DEFAULT_GATE_MM = 60.0
+DEFAULT_GATE_MM = 50.0
 DEFAULT_CODE_PENALTY_MM = 25.0
 DEFAULT_MOTION_SCALE_MM = 5.0
 DEFAULT_NORMAL_WEIGHT_MM = 0.0

@@ -64,7 +64,7 @@ from armourcam.graph import (
 
 from .damage import thresholds
 from .errors import MatcherError
-from .markers import Comparer
+from .markers import Comparer, displacement_records
 from .session import (
     BaselineCaptured,
     Event,
@@ -321,8 +321,13 @@ class DisplacementMatcherNode(Node):
                 self._publish_baseline()
             elif isinstance(ev, RunCompleted):
                 summary = ev.run.report.get("summary", {})
-                log.info(f"run {ev.run.run_id} measured: {json.dumps(summary)[:300]}")
-                self._publish_run(ev.run)
+                text = summary.get("text") or ev.run.report.get("error", "")
+                log.info(f"run {ev.run.run_id} measured: {text}")
+                try:
+                    self._publish_run(ev.run)
+                except Exception as err:  # noqa: BLE001 - the report is on disk; stay up
+                    self.last_error = f"run {ev.run.run_id}: publishing failed: {err}"
+                    log.error(self.last_error)
         if changed:
             self._publish_diagnostics()
 
@@ -343,7 +348,7 @@ class DisplacementMatcherNode(Node):
     def _publish_run(self, run: RunRecord) -> None:
         header = self._header()
         self._pub_markers.publish(marker_array(header, run.markers))
-        cloud_rows = records.rows_to_records(records.DISPLACEMENT, run.rows)
+        cloud_rows = displacement_records(run.rows)
         self._pub_disp.publish(
             records.to_pointcloud2(
                 PointCloud2, PointField, header, records.DISPLACEMENT, cloud_rows

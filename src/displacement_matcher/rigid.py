@@ -139,25 +139,23 @@ def rigid_fit(
     8 deg it is); the translation then follows from the weighted centroids. Without normals and
     with >= 3 points this is the weighted Kabsch/Umeyama fit.
     """
-    w = np.asarray(weights, dtype=np.float64) / float(np.max(weights))
-    var = 1.0 / np.maximum(w, 1e-12)
-    vecs_s, vecs_d, vw = [], [], []
-    for i, j in itertools.combinations(range(len(src)), 2):
-        vs, vd = src[j] - src[i], dst[j] - dst[i]
-        length2 = float(vs @ vs)
-        if length2 > 1e-12:
-            vecs_s.append(vs / np.sqrt(length2))
-            vecs_d.append(vd / max(float(np.linalg.norm(vd)), 1e-12))
-            vw.append(length2 / (var[i] + var[j]) / float(np.max(var)))
+    w = np.asarray(weights, dtype=np.float64)
+    var = 1.0 / np.maximum(w, 1e-12)  # mm^2 per point
+    i, j = np.triu_indices(len(src), k=1)
+    vs, vd = src[j] - src[i], dst[j] - dst[i]
+    length2 = np.einsum("ki,ki->k", vs, vs)
+    good = length2 > 1e-12
+    vs, vd, length2 = vs[good], vd[good], length2[good]
+    S = vs / np.sqrt(length2)[:, None]
+    D = vd / np.maximum(np.linalg.norm(vd, axis=1), 1e-12)[:, None]
+    # Angular variance of a vector between two points: (var_i + var_j) / |v|^2 (rad^2).
+    W = length2 / (var[i[good]] + var[j[good]])
     if src_normals is not None and dst_normals is not None:
-        # Position weights here are relative to the best point's variance (1 mm^2 scale).
-        for k in range(len(src)):
-            vecs_s.append(src_normals[k])
-            vecs_d.append(dst_normals[k])
-            vw.append(1.0 / normal_sigma_rad**2 / float(np.max(var)))
-    if not vecs_s:
+        S = np.vstack([S, src_normals])
+        D = np.vstack([D, dst_normals])
+        W = np.concatenate([W, np.full(len(src_normals), 1.0 / normal_sigma_rad**2)])
+    if len(S) == 0:
         return np.eye(3), np.average(dst - src, axis=0, weights=w)
-    S, D, W = np.array(vecs_s), np.array(vecs_d), np.array(vw)
     H = (S * W[:, None]).T @ D
     U, _, Vt = np.linalg.svd(H)
     sign = float(np.sign(np.linalg.det(Vt.T @ U.T))) or 1.0

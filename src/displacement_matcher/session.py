@@ -260,7 +260,7 @@ def frames_agree(
     cb = np.array([np.asarray(p.covariance_mm2, dtype=np.float64) for p in b])
     codes_b = np.array([p.code for p in b])
     k = min(4, len(b))
-    dist, idx = cKDTree(pb).query(pa, k=k)
+    _, idx = cKDTree(pb).query(pa, k=k)
     idx = np.asarray(idx).reshape(len(a), k)
     ok = np.zeros(len(a), dtype=bool)
     ray = pa / np.linalg.norm(pa, axis=1, keepdims=True).clip(1e-9)
@@ -517,7 +517,7 @@ class Session:
             report = dict(cumulative.report)
             markers = cumulative.markers
             rows = cumulative.rows
-        previous = self.runs[-1].poses if self.runs and frames else None
+        previous = next((r.poses for r in reversed(self.runs) if r.poses), None) if frames else None
         incremental = (
             self._safe_compare(previous, after, events, run_id).report
             if previous is not None

@@ -2,10 +2,11 @@
 
 A unit map (YAML) names the units and their fiducial codes, or gives a *template*: the code set
 that repeats on every unit (the paper's section 5 case, where every dolos carries the same four
-codes), optionally with the fiducials' positions on the unit. Without a map, or with a template,
-units are found automatically in the baseline: fiducials of different codes are grouped by
-proximity, never two of one code in a unit, and when the template gives positions only pairs whose
-distance agrees with the unit's own geometry are grouped.
+codes), optionally with the fiducials' positions and face normals on the unit. Without a map, or
+with a template, units are found automatically in the baseline (and in the current state):
+fiducials of different codes are grouped by proximity, never two of one code in a unit, and when
+the template gives positions (and normals) only pairs whose distance (and the rigid invariants of
+the two oriented fiducials) agree with the unit's own geometry are grouped.
 
 Unit map YAML (lengths in mm, positions in the unit's own frame)::
 
@@ -20,10 +21,15 @@ Unit map YAML (lengths in mm, positions in the unit's own frame)::
       normals: {3: [0, 1, 1], 17: [0, -1, 1], 29: [0, 0, 1], 41: [0, 0, -1]}  # optional
       span_mm: 35           # optional: largest distance between two fiducials of a unit
 
-Per unit the motion is a weighted rigid fit (Kabsch/Umeyama without scale) when at least three of
-its fiducials are matched consistently, a translation otherwise. Matches are screened first:
-same-code matches are preferred to cross-code ones, and only the largest subset whose pairwise
-distances are preserved (a rigid body's are) is used. Camera frame, millimetres.
+Per unit the motion is a weighted rigid fit (:mod:`.rigid`: Kabsch/Umeyama without scale, or
+Wahba's problem over normals and inter-fiducial vectors) when at least three of its fiducials, or
+two with normals, are matched consistently; a translation otherwise. Matches are screened first:
+same-code matches are preferred to cross-code ones, and only the largest subset that one rigid
+motion explains is used (among equal sizes the smallest motion: most units do not move). With a
+template the displacement is reported at the unit's own origin, located by fitting the template
+to the unit's baseline fiducials. :func:`displacement_matcher.refine.match_units` re-matches
+knowing how each unit moved.
+Camera frame, millimetres.
 """
 
 from __future__ import annotations
@@ -328,7 +334,8 @@ def _unit_centre(poses: Sequence[FiducialPose], template: UnitSpec) -> NDArray[n
     """The unit's own origin in the camera frame, from the template fitted to its fiducials.
 
     Needs template positions for >= 3 of them, or >= 2 with normals on both sides; None when
-    the fit is impossible or poor (RMS above 5 mm: a grouping mistake, not a unit).
+    the fit is impossible or poor (RMS above 5 mm, or a normal more than 30 deg off: a grouping
+    mistake or a pose on the wrong ambiguity branch).
     """
     sel = [p for p in poses if int(p.code) in template.positions_mm]
     if len(sel) < 2:
@@ -341,6 +348,10 @@ def _unit_centre(poses: Sequence[FiducialPose], template: UnitSpec) -> NDArray[n
     if n_seen is not None and has_tn:
         n_local = np.array([template.normals[int(p.code)] for p in sel])
         R, t = rigid_fit(local, seen, w, n_local, n_seen)
+        # A pose on the wrong branch of the circle's two-fold ambiguity has a far-off normal:
+        # then the template cannot be trusted to locate the unit's origin.
+        if np.any(np.einsum("ki,ki->k", n_local @ R.T, n_seen) < np.cos(np.radians(30.0))):
+            return None
     elif len(sel) >= 3:
         R, t = rigid_fit(local, seen, w)
     else:
@@ -348,6 +359,24 @@ def _unit_centre(poses: Sequence[FiducialPose], template: UnitSpec) -> NDArray[n
     if np.sqrt(np.mean(np.sum((local @ R.T + t - seen) ** 2, axis=1))) > 5.0:
         return None
     return np.asarray(t, dtype=np.float64)
+
+
+def _centre_of(
+    name: str,
+    ix: list[int],
+    base: tuple[FiducialPose, ...],
+    unit_map: UnitMap | None,
+    cache: dict[str, NDArray[np.float64] | None] | None,
+) -> NDArray[np.float64] | None:
+    """The unit's template-located origin (cached by unit id when a cache is given)."""
+    if unit_map is None or unit_map.template is None or not ix:
+        return None
+    if cache is not None and name in cache:
+        return cache[name]
+    centre = _unit_centre([base[i] for i in ix], unit_map.template)
+    if cache is not None:
+        cache[name] = centre
+    return centre
 
 
 def _turn(a: FiducialPose, b: FiducialPose) -> float:
@@ -410,10 +439,12 @@ def unit_motions(
     rigid_tol_mm: float = DEFAULT_RIGID_TOL_MM,
     overturn_deg: float = DEFAULT_OVERTURN_DEG,
     groups: tuple[list[tuple[str, list[int]]], list[int]] | None = None,
+    centres: dict[str, NDArray[np.float64] | None] | None = None,
 ) -> tuple[tuple[UnitMotion, ...], tuple[int, ...]]:
     """Per-unit rigid motion from a fiducial matching.
 
-    Units come from :func:`assign_units` (or ``groups``, its earlier result). Appeared current
+    Units come from :func:`assign_units` (or ``groups``, its earlier result). ``centres`` caches
+    each unit's template-located origin across calls on the same baseline (filled in here). Appeared current
     fiducials are attached to the nearest unit that already has current fiducials (or lost all of
     them) when their code is free on it, within the unit span: the faces an overturned unit now
     shows.
@@ -497,7 +528,7 @@ def unit_motions(
                 overturn_deg,
                 new_codes,
                 normals,
-                unit_map.template if unit_map is not None else None,
+                _centre_of(name, ix, base, unit_map, centres),
             )
         )
     return tuple(out), tuple(unassigned)
@@ -516,7 +547,7 @@ def _motion_of_unit(
     overturn_deg: float,
     new_codes: tuple[int, ...] = (),
     normals: dict[int, NDArray[np.float64]] | None = None,
-    template: UnitSpec | None = None,
+    centre: NDArray[np.float64] | None = None,
 ) -> UnitMotion:
     """Motion of one unit from its matched fiducials (see :func:`unit_motions`).
 
@@ -601,7 +632,6 @@ def _motion_of_unit(
     nb = _unit_normals([base[d.baseline_index] for d in kept])
     na = _unit_normals([cur[d.current_index] for d in kept])
     with_normals = bool(same) and nb is not None and na is not None
-    centre = _unit_centre([base[i] for i in ix], template) if template is not None else None
     rigid_ok = len(keep) >= 3 and np.linalg.matrix_rank(before - before.mean(axis=0), 1e-6) >= 2
     if (len(keep) >= 2 and with_normals) or rigid_ok:
         if with_normals:
@@ -636,145 +666,3 @@ def _motion_of_unit(
         n_appeared,
         n_cross,
     )
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class UnitAnalysis:
-    """A unit-aware matching: the final fiducial matching, unit motions and leftovers.
-
-    Attributes
-    ----------
-    result : MatchResult
-        The last pass's matching.
-    units : tuple of UnitMotion
-    unassigned : tuple of int
-        Baseline indices that belong to no unit.
-    passes : int
-        Matching passes run (1 = no unit-aware refinement).
-    """
-
-    result: MatchResult
-    units: tuple[UnitMotion, ...]
-    unassigned: tuple[int, ...]
-    passes: int
-
-
-def match_units(
-    baseline: Sequence[FiducialPose],
-    current: Sequence[FiducialPose],
-    *,
-    unit_map: UnitMap | None = None,
-    span_mm: float | None = None,
-    rigid_tol_mm: float = DEFAULT_RIGID_TOL_MM,
-    overturn_deg: float = DEFAULT_OVERTURN_DEG,
-    refine_passes: int = 2,
-    rigid_gate_mm: float = 8.0,
-    translation_gate_mm: float = 15.0,
-    **match_kw: Any,
-) -> UnitAnalysis:
-    """Match fiducials, find units and their motion, then re-match knowing how units moved.
-
-    The first pass is :func:`displacement_matcher.match` alone. A unit whose same-code matches
-    agree on a rigid motion predicts where each of its baseline fiducials is now; the next pass
-    measures costs from those predictions with a tight gate for them (``rigid_gate_mm`` after a
-    rigid fit, ``translation_gate_mm`` after a translation, which ignores the unit's rotation).
-    So a still unit's fiducial that is hidden now no longer grabs a stranger 40 mm away, and a
-    moved unit's fiducials find their new places. Each pass is still one exact global matching.
-
-    Parameters
-    ----------
-    baseline, current : sequence of FiducialPose
-    unit_map : UnitMap, optional
-    span_mm, rigid_tol_mm, overturn_deg
-        See :func:`unit_motions`.
-    refine_passes : int
-        Unit-aware passes after the first (0 for the plain matching).
-    rigid_gate_mm, translation_gate_mm : float
-        Gates of predicted fiducials.
-    **match_kw
-        Passed to :func:`displacement_matcher.match` (``gate_mm``, ``code_penalty_mm``...).
-    """
-    from .match import match
-
-    if refine_passes < 0:
-        raise MatcherError(f"refine_passes must be >= 0, got {refine_passes}")
-    result = match(baseline, current, **match_kw)
-    groups = assign_units(result, unit_map=unit_map, span_mm=span_mm, rigid_tol_mm=rigid_tol_mm)
-    kw = {
-        "unit_map": unit_map,
-        "span_mm": span_mm,
-        "rigid_tol_mm": rigid_tol_mm,
-        "overturn_deg": overturn_deg,
-        "groups": groups,
-    }
-    units, unassigned = unit_motions(result, **kw)  # type: ignore[arg-type]
-    span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
-    template = unit_map.template if unit_map is not None else None
-    explicit = unit_map is not None and bool(unit_map.units)
-    # The current state's own units: fiducials seen together now belong to one unit.
-    cur_groups: list[list[int]] = []
-    if not explicit:
-        cur_ok = [j for j, p in enumerate(current) if np.all(np.isfinite(p.position_mm))]
-        found = group_fiducials(
-            [current[j] for j in cur_ok], span_mm=span, template=template, tol_mm=rigid_tol_mm
-        )
-        cur_groups = [[cur_ok[k] for k in g] for g in found]
-    excluded: set[tuple[int, int]] = set()
-    passes = 1
-    for _ in range(refine_passes):
-        pred = np.full((len(baseline), 3), np.nan)
-        gate = np.full(len(baseline), np.nan)
-        for u in units:
-            if u.method == "none" or u.overturned or u.n_matched == 0:
-                continue
-            ref = u.reference_before_mm
-            for i in u.baseline_indices:
-                p = np.asarray(baseline[i].position_mm, dtype=np.float64)
-                pred[i] = u.rotation @ (p - ref) + ref + u.translation_mm
-                gate[i] = rigid_gate_mm if u.method == "rigid" else translation_gate_mm
-        excluded |= _unit_conflicts(result, groups[0], cur_groups)
-        result = match(
-            baseline,
-            current,
-            prediction_mm=pred,
-            row_gate_mm=gate,
-            exclude_pairs=sorted(excluded),
-            **match_kw,
-        )
-        units, unassigned = unit_motions(result, **kw)  # type: ignore[arg-type]
-        passes += 1
-    return UnitAnalysis(result, units, unassigned, passes)
-
-
-def _unit_conflicts(
-    result: MatchResult,
-    base_units: list[tuple[str, list[int]]],
-    cur_groups: list[list[int]],
-) -> set[tuple[int, int]]:
-    """Pairs that contradict the current state's grouping.
-
-    When one current unit's fiducials are matched to several baseline units, the baseline unit
-    with most of them is that unit; pairs into it from baseline units with fewer are wrong (a
-    still unit's hidden fiducial grabbing a moved neighbour's newly visible one, say).
-    """
-    unit_of = {i: n for n, (_, ix) in enumerate(base_units) for i in ix}
-    pair_of: dict[int, int] = {
-        int(d.current_index): int(d.baseline_index)
-        for d in result.displacements
-        if d.is_match and d.current_index is not None and d.baseline_index is not None
-    }
-    out: set[tuple[int, int]] = set()
-    for g in cur_groups:
-        members = [(pair_of[j], j) for j in g if j in pair_of]
-        owners = [unit_of.get(i, -1 - i) for i, _ in members]
-        if len(set(owners)) < 2:
-            continue
-        counts = {o: owners.count(o) for o in owners}
-        top = max(counts.values())
-        winners = [o for o, c in counts.items() if c == top]
-        if len(winners) != 1:
-            continue
-        for (i, j), o in zip(members, owners, strict=True):
-            if o != winners[0]:
-                out.add((i, j))
-    return out

@@ -15,6 +15,7 @@ Pixel convention: ``(u, v)`` = (column, row), pixel centres at integer coordinat
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -119,7 +120,7 @@ def outer_boundaries(
     return Boundaries(ell[:, 0:2], ell[:, 2:4], ell[:, 4], ell[:, 5], ell[:, 6])
 
 
-def _moment_row(contour: NDArray[np.int32]) -> tuple[float, ...]:
+def _moment_row(contour: NDArray[Any]) -> tuple[float, ...]:
     m = cv2.moments(contour)
     return (m["m00"], m["m10"], m["m01"], m["mu20"], m["mu11"], m["mu02"])
 
@@ -158,9 +159,7 @@ def _size_ok(ell: NDArray[np.float64], max_extent: float) -> NDArray[np.bool_]:
     return (ell[:, 5] > 2.0) & (perimeter >= MIN_BOUNDARY_PX) & (2.0 * a <= max_extent)
 
 
-def _on_ellipse(
-    contours: list[NDArray[np.int32]], rows: NDArray[np.float64]
-) -> NDArray[np.float64]:
+def _on_ellipse(contours: list[NDArray[Any]], rows: NDArray[np.float64]) -> NDArray[np.float64]:
     """For each boundary, the fraction of its points between 0.55 and 1.12 times the radius of
     its ellipse ``rows[i]`` (vectorised over all points of all boundaries)."""
     counts = np.array([len(c) for c in contours])

@@ -20,7 +20,7 @@ Pixel convention: ``(u, v)`` = (x, y) = (column, row), pixel centres at integer 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -173,13 +173,13 @@ def to_grey(image: NDArray[np.generic]) -> tuple[NDArray[np.generic], float]:
     return np.ascontiguousarray(image), full
 
 
-def _to_uint8(grey: NDArray[np.generic], full_scale: float) -> NDArray[np.uint8]:
+def _to_uint8(grey: NDArray[Any], full_scale: float) -> NDArray[np.uint8]:
     """8-bit copy for thresholding: uint16 and float images are stretched to their maximum."""
     if grey.dtype == np.uint8:
-        return grey  # type: ignore[return-value]
+        return grey
     top = float(grey.max())
     alpha = 255.0 / top if top > 0 else 1.0
-    return cv2.convertScaleAbs(grey, alpha=alpha)
+    return np.asarray(cv2.convertScaleAbs(grey, alpha=alpha), dtype=np.uint8)
 
 
 def detect_grey(
@@ -263,7 +263,7 @@ def _finish(
                 cands.drift[gi],
                 reader,
             )
-            for name in ("accepted", "code"):
+            for name in TrackReading.__slots__:
                 getattr(first, name)[gi] = getattr(again, name)
     idx = np.nonzero(first.accepted)[0]
     if idx.size == 0:
@@ -301,10 +301,14 @@ def _finish(
     second = read_codes(grey, full_scale, design, centre, axes, angle, drift, reader)
     out: list[FiducialDetection] = []
     for j, i in enumerate(kidx.tolist()):
-        agree = second.accepted[j] and second.code[j] == first.code[i]
-        if not agree:
-            continue
-        out.append(_detection(design, fitted[j], second, j))
+        if second.accepted[j]:
+            # Two accepted reads of different codes: something is wrong, report nothing.
+            if second.code[j] == first.code[i]:
+                out.append(_detection(design, fitted[j], second, j))
+        else:
+            # The fitted ellipses did not give a clean read (tiny, very slanted fiducials): the
+            # first read passed every rule on its own.
+            out.append(_detection(design, fitted[j], first, i))
     return out
 
 

@@ -7,16 +7,19 @@ gradient. Those lines are (nearly) tangent to the imaged circle, so they satisfy
 least squares with ``C*_33 = 1`` after centring and scaling the coordinates; the ellipse is
 ``C = inv(C*)``. No contour points are extracted, so every pixel of the blurred edge contributes.
 
-Refinements over [1] (each measured in ``benchmarks/detector_precision.py``):
+Refinements over [1] (measured in ``benchmarks/detector_precision.py``):
 
 - pixels are restricted to a band of half-width ``band_px`` around the current ellipse (Sampson
-  distance), tapered smoothly to zero at the band's edge, and the fit is iterated with the band
-  re-centred on the previous estimate;
+  distance); a first pass uses a band one pixel wider for the seed's error, then the fit is
+  repeated with the band re-centred on the previous estimate until it moves less than 0.01 px;
+  the band has hard edges (no taper), so the final estimate does not depend on the previous
+  pass's noise, which the covariance could not account for;
 - pixels whose gradient direction disagrees with the ellipse normal, or whose polarity (dark to
   bright) is the opposite of the edge's, are excluded: they belong to neighbouring edges such as
-  the code sectors;
+  the code sectors; so are gradients not clearly above the noise;
 - gradients are Scharr derivatives (normalised to intensity per pixel), computed only at the
-  band's pixels.
+  band's pixels, and fits are batched (all normal equations summed with ``np.add.reduceat``);
+- a fit that drifts far from its seed (it locked onto another edge) is rejected.
 
 Uncertainty: the image noise ``sigma`` (estimated robustly from the image, or given) is propagated
 to first order through the Scharr filter and the weighted normal equations, including the
@@ -152,14 +155,17 @@ def estimate_noise(image: ArrayLike) -> float:
         noise ``1/sqrt(12)`` for integer images.
     """
     arr = np.asarray(image)
-    img = np.asarray(arr, dtype=np.float32)
-    if img.ndim != 2 or min(img.shape) < 5:
-        raise DetectorError(f"noise estimation needs a 2-D image of at least 5x5, got {img.shape}")
-    # On full frames, every other block of 8 rows keeps the estimate cheap.
-    big = img.size > 400_000
-    blocks = [img[r : r + 8] for r in range(0, img.shape[0] - 7, 16)] if big else [img]
+    if arr.ndim != 2 or min(arr.shape) < 5:
+        raise DetectorError(f"noise estimation needs a 2-D image of at least 5x5, got {arr.shape}")
+    blocks = [arr]
+    if arr.size > 400_000:
+        # On full frames, ~250k pixels in evenly spread blocks of 8 rows keep the estimate cheap.
+        count = max(2, 250_000 // (8 * arr.shape[1]))
+        rows = np.linspace(0, arr.shape[0] - 8, count).astype(int)
+        blocks = [arr[r : r + 8] for r in rows]
     lap, grad = [], []
-    for blk in blocks:
+    for block in blocks:
+        blk = np.asarray(block, dtype=np.float32)
         # Largest central difference in the 3x3 neighbourhood of each pixel (edge detector).
         g = np.maximum(
             np.abs(blk[1:-1, 2:] - blk[1:-1, :-2]), np.abs(blk[2:, 1:-1] - blk[:-2, 1:-1])
@@ -290,7 +296,7 @@ def _band_pixels(
 
 
 def _gradients_at(
-    img: NDArray[np.float32], u: NDArray[np.intp], v: NDArray[np.intp]
+    img: NDArray[Any], u: NDArray[np.intp], v: NDArray[np.intp]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Scharr derivatives (intensity per pixel) at pixels ``(u, v)`` (not on the border)."""
     flat = img.ravel()
@@ -302,8 +308,14 @@ def _gradients_at(
     for dv, du, w in _SCHARR_U:
         if du < 0:
             continue
-        gu += np.float32(w / 32.0) * (flat[base + dv * stride + 1] - flat[base + dv * stride - 1])
-        gv += np.float32(w / 32.0) * (flat[base + stride + dv] - flat[base - stride + dv])
+        row = base + dv * stride
+        col = base + dv
+        gu += np.float32(w / 32.0) * (
+            flat[row + 1].astype(np.float32) - flat[row - 1].astype(np.float32)
+        )
+        gv += np.float32(w / 32.0) * (
+            flat[col + stride].astype(np.float32) - flat[col - stride].astype(np.float32)
+        )
     return gu.astype(np.float64), gv.astype(np.float64)
 
 
@@ -407,7 +419,13 @@ def fit_ellipses(
         return []
     if min(img.shape) < 5:
         return [None] * n
-    imgf = np.ascontiguousarray(img, dtype=np.float32)
+    # Keep the caller's dtype (no full-frame conversion); samples are cast where gathered.
+    imgf = (
+        img
+        if img.dtype in (np.uint8, np.uint16, np.float32, np.float64)
+        else img.astype(np.float64)
+    )
+    imgf = np.ascontiguousarray(imgf)
     sigma = estimate_noise(imgf) if noise_std is None else float(noise_std)
     if np.issubdtype(img.dtype, np.integer) and noise_std is None:
         sigma = max(sigma, 1.0 / np.sqrt(12.0))
@@ -435,27 +453,37 @@ def fit_ellipses(
     )
     ok &= state.ok
     params = np.where(ok[:, None], state.params, params)
+    rms = state.rms.copy()
+    passes = [state]
+    owner = np.zeros(n, dtype=np.intp)  # the pass each fit's final estimate comes from
     active = ok.copy()
     for _ in range(_MAX_REFINEMENTS):
         new = _fit_once(imgf, params, np.where(active, band, 0.0), active, grads, sign, sigma)
         moved = np.max(np.abs(new.params[:, :4] - params[:, :4]), axis=1, initial=0.0)
         ok &= ~active | new.ok
-        state = _merge_states(state, new, active)
-        params = np.where((active & ok)[:, None], new.params, params)
+        done = active & ok
+        params = np.where(done[:, None], new.params, params)
+        rms = np.where(done, new.rms, rms)
+        owner[active] = len(passes)
+        passes.append(new)
         active &= ok & (moved > _CONVERGED_PX)
         if not np.any(active):
             break
     # A fit that wandered far from its seed locked onto some other edge: not this ellipse.
     limit = 2.0 * (band + _SEED_SLACK_PX)
-    drift = np.max(np.abs(state.params[:, :4] - seed_params[:, :4]), axis=1)
+    drift = np.max(np.abs(params[:, :4] - seed_params[:, :4]), axis=1)
     ok &= np.nan_to_num(drift, nan=np.inf) <= limit
-    cov = _covariances(state, sigma)
+    cov = np.full((n, 5, 5), np.nan)
+    for k, st in enumerate(passes):
+        mine = ok & (owner == k)
+        if np.any(mine):
+            cov[mine] = _covariances(st, sigma, mine)[mine]
     results: list[Ellipse | None] = []
     for j in range(n):
         if not ok[j] or not np.all(np.isfinite(cov[j])):
             results.append(None)
             continue
-        u, v, a, b, ang = state.params[j]
+        u, v, a, b, ang = params[j]
         results.append(
             Ellipse(
                 center_px=(float(u + origin[0]), float(v + origin[1])),
@@ -464,7 +492,7 @@ def fit_ellipses(
                 angle=float(ang),
                 covariance=cov[j],
                 radius=float(radius_arr[j]),
-                rms_residual=float(state.rms[j]),
+                rms_residual=float(rms[j]),
             )
         )
     return results
@@ -561,28 +589,6 @@ class _FitState:
     y: NDArray[np.float64]
 
 
-def _merge_states(old: _FitState, new: _FitState, take: NDArray[np.bool_]) -> _FitState:
-    """``new``'s results for the fits in ``take``, ``old``'s for the others."""
-    if np.all(take):
-        return new
-    keep_old = ~take[old.fit]
-    keep_new = take[new.fit]
-    fit = np.concatenate([old.fit[keep_old], new.fit[keep_new]])
-    order = np.argsort(fit, kind="stable")
-    kw: dict[str, NDArray[Any]] = {}
-    for name in _PIXEL_FIELDS:
-        a, b = getattr(old, name), getattr(new, name)
-        kw[name] = np.concatenate([a[keep_old], b[keep_new]])[order]
-    for name in _FIT_FIELDS:
-        a, b = getattr(old, name), getattr(new, name)
-        mask = take.reshape(-1, *([1] * (a.ndim - 1)))
-        kw[name] = np.where(mask, b, a)
-    return _FitState(**kw)
-
-
-_PIXEL_FIELDS = ("P", "W", "c", "fit", "gmag", "nu", "nv", "pu", "pv", "r", "x", "y")
-_FIT_FIELDS = ("M", "ok", "params", "rms", "scale", "theta")
-
 # Index pairs of the 15 distinct entries of a symmetric 5x5 matrix.
 _IU = np.triu_indices(5)
 
@@ -604,7 +610,7 @@ def _dual_to_conics(theta: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _fit_once(
-    img: NDArray[np.float32],
+    img: NDArray[Any],
     params: NDArray[np.float64],
     half: NDArray[np.float64],
     ok: NDArray[np.bool_],
@@ -740,9 +746,11 @@ def _sensitivities(st: _FitState, sigma: float) -> tuple[NDArray[np.float64], ND
     """
     theta = np.nan_to_num(st.theta)[st.fit]
     x, y, W = st.x, st.y, st.W
-    conic = np.nan_to_num(_dual_to_conics(np.nan_to_num(st.theta)))[st.fit]
-    mu = conic[:, 0, 0] * x + conic[:, 0, 1] * y + conic[:, 0, 2]
-    mv = conic[:, 0, 1] * x + conic[:, 1, 1] * y + conic[:, 1, 2]
+    conic = np.nan_to_num(_dual_to_conics(np.nan_to_num(st.theta)))
+    c00, c01, c02 = conic[:, 0, 0][st.fit], conic[:, 0, 1][st.fit], conic[:, 0, 2][st.fit]
+    c11, c12 = conic[:, 1, 1][st.fit], conic[:, 1, 2][st.fit]
+    mu = c00 * x + c01 * y + c02
+    mv = c01 * x + c11 * y + c12
     flip = np.where(mu * st.nu + mv * st.nv < 0, -1.0, 1.0) / np.maximum(np.hypot(mu, mv), 1e-300)
     mu, mv = mu * flip, mv * flip
     phi = np.arctan2(mu * st.nv - mv * st.nu, mu * st.nu + mv * st.nv)
@@ -761,7 +769,7 @@ def _sensitivities(st: _FitState, sigma: float) -> tuple[NDArray[np.float64], ND
     dp_dv = np.column_stack([zero, nu, 2 * nv, -nu * y, c - nv * y])
     dr_du = np.einsum("ij,ij->i", dp_du, theta) - 2 * c * x
     dr_dv = np.einsum("ij,ij->i", dp_dv, theta) - 2 * c * y
-    # Chain through n = g/|g|: dn/dg = (I - n n^T)/|g|; and W = |g|^2 taper: dW/dg = 2 W n / |g|.
+    # Chain through n = g/|g|: dn/dg = (I - n n^T)/|g|; and W = |g|^2: dW/dg = 2 W n / |g|.
     inv = 1.0 / st.gmag
     a11, a12, a22 = (1 - nu * nu) * inv, -nu * nv * inv, (1 - nv * nv) * inv
     dpg_u = dp_du * a11[:, None] + dp_dv * a12[:, None]
@@ -774,8 +782,9 @@ def _sensitivities(st: _FitState, sigma: float) -> tuple[NDArray[np.float64], ND
     return Vu, Vv
 
 
-def _covariances(st: _FitState, sigma: float) -> NDArray[np.float64]:
-    """(n, 5, 5) covariances of (u, v, a, b, angle) from image noise ``sigma`` (first order)."""
+def _covariances(st: _FitState, sigma: float, wanted: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """(n, 5, 5) covariances of (u, v, a, b, angle) from image noise ``sigma`` (first order),
+    for the ``wanted`` fits (NaN for the others)."""
     n = len(st.params)
     out = np.full((n, 5, 5), np.nan)
     if st.fit.size == 0 or not np.isfinite(sigma):
@@ -788,7 +797,7 @@ def _covariances(st: _FitState, sigma: float) -> NDArray[np.float64]:
     Vu32, Vv32 = Vu.astype(np.float32), Vv.astype(np.float32)
     starts, counts = _segments(st.fit, n)
     S = np.zeros((n, 5, 5))
-    present = st.ok & (counts > 0)
+    present = st.ok & wanted & (counts > 0)
     for j in np.flatnonzero(present):
         sl = slice(starts[j], starts[j] + counts[j])
         pu, pv = st.pu[sl], st.pv[sl]

@@ -135,7 +135,7 @@ class FiducialDetectorNode(Node):
             image = image_codec.decode(msg)
             kwargs: dict[str, Any] = {"design": self.config.design} if self.config.design else {}
             dets = self._detect(image, **kwargs)
-        except Exception as err:  # noqa: BLE001 - one bad frame must not take the node down
+        except Exception as err:
             # image_codec's and the detector's input errors are ValueErrors; anything else is a
             # bug worth its type name in the log, but still not worth the rig's monitoring.
             self.dropped += 1

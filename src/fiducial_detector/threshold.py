@@ -14,6 +14,8 @@ Tools 12(2), 2007.
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -95,11 +97,12 @@ def bradley_threshold(
         raise DetectorError(f"threshold windows must be at least 3 pixels, got {window}")
     # (1 - t) * mean through a lookup table: an 8-bit LUT is far cheaper than float arithmetic.
     lut = np.ceil(np.arange(256) * (1.0 - t)).astype(np.uint8)
-    limit: NDArray[np.uint8] | None = None
+    limit: NDArray[Any] | None = None
     for side in sides:
         mean = cv2.boxFilter(grey, -1, (side | 1, side | 1), borderType=cv2.BORDER_REPLICATE)
         lim = cv2.LUT(mean, lut)
         limit = lim if limit is None else cv2.max(limit, lim)
+    assert limit is not None
     black = cv2.compare(grey, limit, cv2.CMP_LT)
     if thin_px >= 3:
         kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (thin_px, thin_px))

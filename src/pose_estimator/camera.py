@@ -2,7 +2,8 @@
 
 Frames and conventions: the camera frame is OpenCV's (x right, y down, z forward, millimetres);
 pixel centres are at integer coordinates. Distortion coefficients follow ROS ``CameraInfo.d`` and
-OpenCV: plumb_bob ``(k1, k2, p1, p2, k3)``, rational_polynomial ``(k1, k2, p1, p2, k3, k4, k5, k6)``.
+OpenCV: plumb_bob ``(k1, k2, p1, p2, k3)``, rational_polynomial
+``(k1, k2, p1, p2, k3, k4, k5, k6)``.
 The camera is loaded from a ``sensor_msgs/CameraInfo``'s fields or from the camera_calibration YAML
 file written by ROS ``camera_calibration``.
 """
@@ -63,7 +64,8 @@ class CameraModel:
             D = np.zeros(n)
         if D.size != n or not np.all(np.isfinite(D)):
             raise CalibrationError(
-                f"{self.distortion_model} needs {n} finite distortion coefficients, got {D.tolist()}"
+                f"{self.distortion_model} needs {n} finite distortion coefficients, "
+                f"got {D.tolist()}"
             )
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "D", D)
@@ -84,11 +86,10 @@ class CameraModel:
         return bool(np.any(self.D != 0.0))
 
     def check_image_size(self, width: int, height: int) -> None:
-        """Raise :class:`CalibrationError` unless an image of ``width x height`` fits this camera."""
+        """Raise :class:`CalibrationError` unless a ``width x height`` image fits this camera."""
         if (width, height) != (self.width, self.height):
             raise CalibrationError(
-                f"image is {width}x{height} but the calibration is for "
-                f"{self.width}x{self.height}"
+                f"image is {width}x{height} but the calibration is for {self.width}x{self.height}"
             )
 
     def project(self, points_mm: ArrayLike) -> NDArray[np.float64]:
@@ -108,8 +109,8 @@ class CameraModel:
         if not self.has_distortion:
             uv = p[:, :2] / p[:, 2:3]
             return uv * np.diag(self.K)[:2] + self.K[:2, 2]
-        uv, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), self.K, self.D)
-        return uv.reshape(-1, 2)
+        proj, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), self.K, self.D)
+        return np.asarray(proj, dtype=np.float64).reshape(-1, 2)
 
     def distort_normalized(self, xy: ArrayLike) -> NDArray[np.float64]:
         """Map ideal normalised coordinates ``(x/z, y/z)`` to distorted pixel coordinates."""
@@ -137,7 +138,7 @@ class CameraModel:
         return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
     def undistort_pixels(self, uv: ArrayLike) -> NDArray[np.float64]:
-        """Map distorted pixel coordinates to the pixels an ideal camera with the same ``K`` sees."""
+        """Map distorted pixels to the pixels an ideal camera with the same ``K`` sees."""
         n = self.undistort_normalized(uv)
         return n * np.diag(self.K)[:2] + self.K[:2, 2]
 
@@ -203,7 +204,7 @@ class CameraModel:
         return cls.from_camera_info(width, height, k, model, d)
 
     def to_dict(self, camera_name: str = "armourcam") -> dict[str, Any]:
-        """The camera_calibration YAML mapping of this camera (round-trips with :meth:`from_dict`)."""
+        """The camera_calibration YAML mapping (round-trips with :meth:`from_dict`)."""
         return {
             "image_width": self.width,
             "image_height": self.height,

@@ -48,7 +48,7 @@ def conic_from_params(params: ArrayLike) -> F64:
     q12 = i11 * i12 + i12 * i22
     q22 = i12 * i12 + i22 * i22
     u, v = p[..., 0], p[..., 1]
-    out = np.empty(p.shape[:-1] + (3, 3))
+    out = np.empty((*p.shape[:-1], 3, 3))
     out[..., 0, 0] = q11
     out[..., 0, 1] = out[..., 1, 0] = q12
     out[..., 1, 1] = q22
@@ -138,7 +138,9 @@ def circle_params(center: ArrayLike, normal: ArrayLike, radius: ArrayLike) -> F6
     )
 
 
-def params_from_axes(u: ArrayLike, v: ArrayLike, a: ArrayLike, b: ArrayLike, angle: ArrayLike) -> F64:
+def params_from_axes(
+    u: ArrayLike, v: ArrayLike, a: ArrayLike, b: ArrayLike, angle: ArrayLike
+) -> F64:
     """``(u, v, s11, s12, s22)`` from centre, semi-axes and major-axis angle (radians)."""
     ua, va, aa, ba, th = (np.asarray(x, dtype=np.float64) for x in (u, v, a, b, angle))
     c, s = np.cos(th), np.sin(th)
@@ -162,7 +164,7 @@ def axes_to_params_jacobian(a: ArrayLike, b: ArrayLike, angle: ArrayLike) -> F64
     aa, ba, th = (np.asarray(x, dtype=np.float64) for x in (a, b, angle))
     c, s = np.cos(th), np.sin(th)
     d = aa - ba
-    J = np.zeros(aa.shape + (5, 5))
+    J = np.zeros((*aa.shape, 5, 5))
     J[..., 0, 0] = J[..., 1, 1] = 1.0
     J[..., 2, 2], J[..., 2, 3], J[..., 2, 4] = c * c, s * s, -2.0 * c * s * d
     J[..., 3, 2], J[..., 3, 3], J[..., 3, 4] = c * s, -c * s, d * (c * c - s * s)
@@ -195,7 +197,7 @@ def circle_conic(
     e1, e2 = _plane_basis(n)
     H = np.asarray(K, dtype=np.float64) @ np.stack([e1, e2, c], axis=-1)
     Hinv = np.linalg.inv(H)
-    D = np.zeros(r.shape + (3, 3))
+    D = np.zeros((*r.shape, 3, 3))
     D[..., 0, 0] = D[..., 1, 1] = 1.0
     D[..., 2, 2] = -r * r
     out: F64 = np.swapaxes(Hinv, -1, -2) @ D @ Hinv
@@ -253,7 +255,7 @@ def circle_pose(cone: ArrayLike, radius_mm: ArrayLike) -> tuple[F64, F64]:
         b = np.sqrt(np.clip(l2 - l3, 0.0, None))
         s = np.sqrt(l1 - l3)
         k = r * l2 * s / np.sqrt(-l1 * l3)
-        centers = np.empty(w.shape[:-1] + (2, 3))
+        centers = np.empty((*w.shape[:-1], 2, 3))
         normals = np.empty_like(centers)
         for i, sign in enumerate((1.0, -1.0)):
             m = a[..., None] * e1 + sign * b[..., None] * e3  # plane m . x = k, |m| = s
@@ -292,7 +294,7 @@ def fit_conics(points: ArrayLike) -> F64:
     A = np.stack([X * X, X * Y, Y * Y, X, Y, np.ones_like(X)], axis=-1)
     _, _, vt = np.linalg.svd(A, full_matrices=False)
     c = vt[..., -1, :]
-    Cn = np.empty(P.shape[:-2] + (3, 3))
+    Cn = np.empty((*P.shape[:-2], 3, 3))
     Cn[..., 0, 0] = c[..., 0]
     Cn[..., 0, 1] = Cn[..., 1, 0] = 0.5 * c[..., 1]
     Cn[..., 1, 1] = c[..., 2]
@@ -300,7 +302,7 @@ def fit_conics(points: ArrayLike) -> F64:
     Cn[..., 1, 2] = Cn[..., 2, 1] = 0.5 * c[..., 4]
     Cn[..., 2, 2] = c[..., 5]
     # Undo the normalisation x = T p: C = T^T Cn T.
-    T = np.zeros(P.shape[:-2] + (3, 3))
+    T = np.zeros((*P.shape[:-2], 3, 3))
     s = 1.0 / scale[..., 0, 0]
     T[..., 0, 0] = T[..., 1, 1] = s
     T[..., 0, 2] = -mean[..., 0, 0] * s
@@ -320,7 +322,12 @@ def ellipse_points(params: ArrayLike, count: int) -> F64:
     p = np.asarray(params, dtype=np.float64)
     t = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
     w = np.stack([np.cos(t), np.sin(t)], axis=-1)  # (count, 2)
-    S = np.empty(p.shape[:-1] + (2, 2))
-    S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1] = p[..., 2], p[..., 3], p[..., 3], p[..., 4]
+    S = np.empty((*p.shape[:-1], 2, 2))
+    S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1] = (
+        p[..., 2],
+        p[..., 3],
+        p[..., 3],
+        p[..., 4],
+    )
     out: F64 = p[..., None, :2] + np.einsum("...ij,mj->...mi", S, w)
     return out

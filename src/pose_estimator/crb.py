@@ -45,11 +45,17 @@ class DepthBound:
     pose: float
 
 
-def _image(camera: CameraModel, target: Target, blur_sigma: float, supersample: int) -> NDArray:
+def _image(
+    camera: CameraModel, target: Target, blur_sigma: float, supersample: int
+) -> NDArray[np.float64]:
+    """Noise-free image (fraction of full range) of one target, blurred."""
     scene = render(camera, [target], dtype=np.uint16, supersample=supersample)
     img = scene.image.astype(np.float64) / 65535.0
     if blur_sigma > 0:
-        img = cv2.GaussianBlur(img, (0, 0), blur_sigma, borderType=cv2.BORDER_REFLECT)
+        img = np.asarray(
+            cv2.GaussianBlur(img, (0, 0), blur_sigma, borderType=cv2.BORDER_REFLECT),
+            dtype=np.float64,
+        )
     return img
 
 

@@ -22,7 +22,8 @@ the TRIP method). Here every fitted concentric circle of the design contributes:
    mixture, whose covariance includes the spread between them.
 
 Conventions: pixels ``(u, v)`` with pixel centres at integer coordinates; camera frame OpenCV
-(x right, y down, z forward), millimetres; normals point out of the printed face, towards the camera.
+(x right, y down, z forward), millimetres; normals point out of the printed face, towards the
+camera.
 """
 
 from __future__ import annotations
@@ -54,9 +55,9 @@ F64 = NDArray[np.float64]
 #: covariance; the pose covariance is then only nominal.
 DEFAULT_SIGMA_PX = 0.05
 #: Systematic floor (pixels, per ellipse parameter) added to the inner circles' fit covariances:
-#: the coding track next to them and toner spread bias inner edges by several hundredths of a pixel at small sizes,
-#: which a noise-only covariance does not cover. They still resolve the ambiguity and refine the
-#: normal, without pulling the depth.
+#: the coding track next to them and toner spread bias inner edges by several hundredths of a
+#: pixel at small sizes, which a noise-only covariance does not cover. They still resolve the
+#: ambiguity and refine the normal, without pulling the depth.
 INNER_FLOOR_PX = 0.05
 _UNDISTORT_SAMPLES = 32
 _GN_ITERATIONS = 1
@@ -136,7 +137,15 @@ class PoseArrays:
         Weighted squared residual of the chosen candidate's fit.
     """
 
-    __slots__ = ("ambiguity", "center_px", "chi2", "covariance_mm2", "normal", "position_mm", "valid")
+    __slots__ = (
+        "ambiguity",
+        "center_px",
+        "chi2",
+        "covariance_mm2",
+        "normal",
+        "position_mm",
+        "valid",
+    )
 
     def __init__(
         self,
@@ -157,7 +166,9 @@ class PoseArrays:
         self.chi2 = chi2
 
 
-def detections_to_arrays(dets: Sequence[FiducialDetection], outer_radius_mm: float) -> tuple[F64, F64, F64]:
+def detections_to_arrays(
+    dets: Sequence[FiducialDetection], outer_radius_mm: float
+) -> tuple[F64, F64, F64]:
     """Observation arrays ``(N, K, 5)``, covariances ``(N, K, 5, 5)`` and radii ``(N, K)`` (mm).
 
     Missing circles (fewer ellipses than ``K``) get NaN observations.
@@ -201,7 +212,9 @@ def _cov_or_nan(cov: object) -> F64:
 
 def ellipse_observation(ellipse: Ellipse) -> tuple[F64, F64]:
     """One ellipse as ``(u, v, s11, s12, s22)`` with its 5x5 covariance in those parameters."""
-    obs = params_from_axes(*ellipse.center_px, ellipse.semi_major, ellipse.semi_minor, ellipse.angle)
+    obs = params_from_axes(
+        *ellipse.center_px, ellipse.semi_major, ellipse.semi_minor, ellipse.angle
+    )
     J = axes_to_params_jacobian(ellipse.semi_major, ellipse.semi_minor, ellipse.angle)
     return obs, J @ np.asarray(ellipse.covariance, dtype=np.float64) @ J.T
 
@@ -244,7 +257,7 @@ def estimate_arrays(
     obs = np.asarray(obs, dtype=np.float64)
     cov = np.asarray(cov, dtype=np.float64)
     radius_mm = np.asarray(radius_mm, dtype=np.float64)
-    if obs.ndim != 3 or obs.shape[2] != 5 or cov.shape != obs.shape + (5,):
+    if obs.ndim != 3 or obs.shape[2] != 5 or cov.shape != (*obs.shape, 5):
         raise PoseError(f"obs must be (N, K, 5) and cov (N, K, 5, 5); got {obs.shape}, {cov.shape}")
     if radius_mm.shape != obs.shape[:2]:
         raise PoseError(f"radius_mm must be {obs.shape[:2]}, got {radius_mm.shape}")
@@ -264,11 +277,10 @@ def estimate_arrays(
     # The ambiguity test uses the fits' own covariances (the inner circles' geometry relative to
     # the pose circle is what tells the candidates apart); the refinement adds the systematic
     # floor to the inner circles, as a scalar deflation (sigma^2 / (sigma^2 + floor^2)).
-    W_fit = W
+    lam = np.ones((n, kc))
     if kc > 1 and inner_floor_px > 0:
         var = np.trace(cov[:, 1:], axis1=-2, axis2=-1) / 5.0
-        W_fit = W.copy()
-        W_fit[:, 1:] *= (var / (var + inner_floor_px**2))[..., None, None]
+        lam[:, 1:] = var / (var + inner_floor_px**2)
     # Closed form from the pose circle (index 0), both candidates.
     centers, normals = circle_pose(conic_from_params(obs_n[:, 0]), safe_r[:, 0])  # (N, 2, 3)
     valid = present[:, 0] & np.all(np.isfinite(centers), axis=(1, 2))
@@ -282,10 +294,10 @@ def estimate_arrays(
     best = np.where(w0 >= 0.5, 0, 1)
     idx = np.arange(n)
     # Joint refinement of the better candidate over all circles.
-    c_best, normal, inv_info, chi2 = _gauss_newton(
-        obs_n, W_fit, safe_r, centers[idx, best], normals[idx, best], iterations, free_scale
+    c_best, normal, cov_c, chi2 = _gauss_newton(
+        obs_n, W, lam, safe_r, centers[idx, best], normals[idx, best], iterations, free_scale
     )
-    cov_best = 0.5 * (inv_info[:, :3, :3] + np.swapaxes(inv_info[:, :3, :3], -1, -2))
+    cov_best = 0.5 * (cov_c + np.swapaxes(cov_c, -1, -2))
     c = centers.copy()
     c[idx, best] = c_best
     w = np.stack([w0, 1.0 - w0], axis=1)
@@ -306,7 +318,7 @@ def _to_normalised(obs: F64, W: F64, K: F64) -> tuple[F64, F64]:
     shifted = obs - np.array([cx, cy, 0.0, 0.0, 0.0])
     if fx == fy:
         return shifted / fx, W * (fx * fx)
-    A = np.broadcast_to(np.diag([1.0 / fx, 1.0 / fy]), obs.shape[:-1] + (2, 2))
+    A = np.broadcast_to(np.diag([1.0 / fx, 1.0 / fy]), (*obs.shape[:-1], 2, 2))
     Jinv = np.linalg.inv(_affine_params_jacobian(shifted, A))
     return _affine_params(shifted, A), np.swapaxes(Jinv, -1, -2) @ W @ Jinv
 
@@ -342,10 +354,11 @@ def _undistort(
     # Local affine part of the undistortion at the centre (central differences, 0.5 px).
     h = 0.5
     c = safe[..., :2].reshape(-1, 2)
-    probe = np.concatenate([c + [h, 0.0], c - [h, 0.0], c + [0.0, h], c - [0.0, h]])
+    du, dv = np.array([h, 0.0]), np.array([0.0, h])
+    probe = np.concatenate([c + du, c - du, c + dv, c - dv])
     m = camera.undistort_pixels(probe).reshape(4, -1, 2)
     A = np.stack([(m[0] - m[1]) / (2 * h), (m[2] - m[3]) / (2 * h)], axis=-1)
-    A = A.reshape(obs.shape[:-1] + (2, 2))
+    A = A.reshape((*obs.shape[:-1], 2, 2))
     J = _affine_params_jacobian(safe, A)
     newcov = J @ cov @ np.swapaxes(J, -1, -2)
     new = np.where(present[..., None], new, np.nan)
@@ -354,8 +367,13 @@ def _undistort(
 
 def _affine_params(p: F64, A: F64) -> F64:
     """Parameters of the ellipse ``p`` mapped by the linear map ``A`` (centre and shape)."""
-    S = np.empty(p.shape[:-1] + (2, 2))
-    S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1] = p[..., 2], p[..., 3], p[..., 3], p[..., 4]
+    S = np.empty((*p.shape[:-1], 2, 2))
+    S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1] = (
+        p[..., 2],
+        p[..., 3],
+        p[..., 3],
+        p[..., 4],
+    )
     AS = A @ S
     M = AS @ np.swapaxes(AS, -1, -2)
     m11, m12, m22 = M[..., 0, 0], M[..., 0, 1], M[..., 1, 1]
@@ -367,7 +385,7 @@ def _affine_params(p: F64, A: F64) -> F64:
 
 def _affine_params_jacobian(p: F64, A: F64) -> F64:
     """Numerical Jacobian of :func:`_affine_params` w.r.t. ``p``, shape ``(..., 5, 5)``."""
-    J = np.empty(p.shape + (5,))
+    J = np.empty((*p.shape, 5))
     for j in range(5):
         step = np.zeros(5)
         step[j] = 1e-4
@@ -427,6 +445,7 @@ def _inv(A: F64) -> F64:
 def _gauss_newton(
     obs: F64,
     W: F64,
+    lam: F64,
     radius: F64,
     center: F64,
     normal: F64,
@@ -435,15 +454,19 @@ def _gauss_newton(
 ) -> tuple[F64, F64, F64, F64]:
     """Refine circle centres and normals (``(N, 3)``) against all circles of each fiducial.
 
-    ``obs`` ``(N, K, 5)`` and ``W`` ``(N, K, 5, 5)`` (inverse covariances) are in normalised
-    coordinates, ``radius`` ``(N, K)``. With ``free_scale`` the radii of circles ``1..K-1`` are
-    nuisance parameters (their scale relative to the printed value is estimated): they still fix the
-    centre's image and the normal, but depth comes from the pose circle alone, so a size bias of
-    the inner edges (toner spread, blur of a nearby track) cannot leak into z. ``iterations >= 1``.
+    ``obs`` ``(N, K, 5)`` and ``W`` ``(N, K, 5, 5)`` (inverse covariances of the fits) are in
+    normalised coordinates, ``radius`` ``(N, K)``. Circle ``k`` is weighted by ``lam[..., k] * W``
+    (``lam < 1`` deflates circles with a systematic floor); the covariance returned is then the
+    sandwich ``A^-1 B A^-1`` with ``A = sum lam J^T W J`` and ``B = sum lam^2 J^T W J``, which is
+    the estimator's actual covariance under the fits' own covariances.
 
-    Returns centres, normals, the inverse information matrices (their top-left 5x5: centre x, y, z,
-    then two normal angles in the last tangent basis; the covariance of the estimate) and the
-    final chi-square.
+    With ``free_scale`` the radii of circles ``1..K-1`` are nuisance parameters (their scale
+    relative to the printed value is estimated): they still fix the centre's image and the normal,
+    but depth comes from the pose circle alone, so a size bias of the inner edges (toner spread,
+    blur of a nearby track) cannot leak into z. ``iterations >= 1``.
+
+    Returns centres, normals, the 3x3 covariances of the centres and the final weighted
+    chi-square.
     """
     c = center.copy()
     n = normal.copy()
@@ -451,7 +474,8 @@ def _gauss_newton(
     kc = radius.shape[-1]
     extra = kc - 1 if free_scale else 0
     npar = 5 + extra
-    inv_info = np.zeros(c.shape[:-1] + (npar, npar))
+    cov = np.zeros((*c.shape[:-1], 3, 3))
+    Wl = W * lam[..., None, None]
     for _ in range(iterations):
         e1, e2 = _basis(n)
         # The base pose and perturbed ones (forward differences: steps far below the noise, far
@@ -472,7 +496,7 @@ def _gauss_newton(
         pred = circle_params(cs[..., None, :], ns[..., None, :], rs)  # (m, N, K, 5)
         base = pred[0]
         steps = np.stack([h, h, h, np.full_like(h, da), np.full_like(h, da)])
-        J = np.zeros(base.shape + (npar,))
+        J = np.zeros((*base.shape, npar))
         J[..., :5] = np.moveaxis((pred[1:6] - base) / steps[..., None, None], 0, -1)
         if extra:
             ds = (pred[6] - base) / da  # (N, K, 5): each circle's own scale column
@@ -481,13 +505,17 @@ def _gauss_newton(
         J = np.where(np.isfinite(J), J, 0.0)
         res = obs - base
         res = np.where(np.isfinite(res), res, 0.0)
-        JtW = np.swapaxes(J, -1, -2) @ W
-        info = np.sum(JtW @ J, axis=-3)
+        JtW = np.ascontiguousarray(np.swapaxes(J, -1, -2)) @ Wl
+        terms = JtW @ J  # (N, K, P, P), lam_k J^T W J
+        info = np.sum(terms, axis=-3)
         grad = np.sum(JtW @ res[..., None], axis=-3)
         # A tiny damping only guards against singular steps (e.g. a missing inner circle).
         damp = (1e-12 * np.trace(info, axis1=-2, axis2=-1) + 1e-300)[..., None, None] * np.eye(npar)
         inv_info = _inv(info + damp)
         delta = (inv_info @ grad)[..., 0]
+        # Sandwich covariance of the position block only (what is reported).
+        B = np.sum(terms * lam[..., None, None], axis=-3)
+        cov = inv_info[..., :3, :] @ B @ inv_info[..., :, :3]
         delta = np.where(np.isfinite(delta), delta, 0.0)
         c = c + delta[..., :3]
         n = n + delta[..., 3:4] * e1 + delta[..., 4:5] * e2
@@ -498,5 +526,5 @@ def _gauss_newton(
     # below the scale on which the Jacobian changes.
     res = obs - circle_params(c[..., None, :], n[..., None, :], rad)
     res = np.where(np.isfinite(res), res, 0.0)
-    chi2 = _quadratic(res, W)
-    return c, n, inv_info, chi2
+    chi2 = _quadratic(res, Wl)
+    return c, n, cov, chi2

@@ -133,7 +133,9 @@ def fuse(
     if not frames:
         raise PoseError("no frames to fuse")
     if gate_mm <= 0 or not 0.0 <= min_fraction <= 1.0:
-        raise PoseError(f"need gate_mm > 0 and 0 <= min_fraction <= 1, got {gate_mm}, {min_fraction}")
+        raise PoseError(
+            f"need gate_mm > 0 and 0 <= min_fraction <= 1, got {gate_mm}, {min_fraction}"
+        )
     tracks: list[list[FiducialPose]] = []
     anchors: list[tuple[int, F64]] = []
     for frame in frames:
@@ -153,7 +155,10 @@ def fuse(
             else:
                 tracks[best].append(pose)
                 claimed.add(best)
-                anchors[best] = (pose.code, np.median([p.position_mm for p in tracks[best]], axis=0))
+                anchors[best] = (
+                    pose.code,
+                    np.median([p.position_mm for p in tracks[best]], axis=0),
+                )
     need = min_fraction * len(frames)
     fused = [fuse_poses(t, gate=gate) for t in tracks if len(t) >= need]
     order = sorted(range(len(fused)), key=lambda i: fused[i].code)

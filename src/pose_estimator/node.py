@@ -192,7 +192,7 @@ class PoseEstimatorNode(Node):
             dets = records.records_to_detections(records.from_pointcloud2(msg, records.DETECTION))
             poses = estimate(dets, self.camera, self._diameter())
             rows = records.poses_to_records(poses, dets)
-        except Exception as err:  # noqa: BLE001 - one bad frame must not take the node down
+        except Exception as err:
             self.dropped += 1
             kind = "" if isinstance(err, ValueError) else f"{type(err).__name__}: "
             self.last_error = f"frame dropped: {kind}{err}"

@@ -77,7 +77,11 @@ def test_cost_equals_brute_force_and_dense_optimum(seed: int) -> None:
         "gate_mm": float(rng.uniform(10, 50)),
         "code_penalty_mm": float(rng.choice([5.0, 20.0, math.inf])),
         "motion_scale_mm": float(rng.uniform(1, 10)),
+        "normal_weight_mm": float(rng.choice([0.0, 5.0])),
     }
+    for p in base + cur:  # random normals so that the normal term matters
+        v = rng.normal(size=3)
+        p.normal[:] = v / np.linalg.norm(v)
     result = match(base, cur, **kw)
     cost = cost_matrix(base, cur, **kw)
     unmatched = kw["gate_mm"] / 2
@@ -220,3 +224,27 @@ def test_malformed_arrays_are_rejected() -> None:
     assert [x.index for x in r.rejected] == [0]
     assert "2 elements" in r.rejected[0].reason
     assert r.pairs().tolist() == [[1, 0]]
+
+
+def test_prediction_row_gate_and_excluded_pairs() -> None:
+    """Unit-aware options: costs from predicted positions, tighter row gates, excluded pairs."""
+    base = [make_pose(1, [0, 0, 800]), make_pose(1, [40, 0, 800])]
+    cur = [make_pose(1, [20, 0, 800]), make_pose(1, [41, 0, 800])]
+    assert sorted(match(base, cur, gate_mm=50.0).pairs().tolist()) == [[0, 0], [1, 1]]
+    # Excluding (0, 0) leaves baseline 0 unmatched (current 1 is taken more cheaply).
+    r = match(base, cur, gate_mm=50.0, exclude_pairs=[(0, 0)])
+    assert r.pairs().tolist() == [[1, 1]]
+    # A prediction that baseline 0 stayed, with a tight gate, rejects the 20 mm partner ...
+    pred = np.array([[0.0, 0, 800], [np.nan, np.nan, np.nan]])
+    r = match(base, cur, gate_mm=50.0, prediction_mm=pred, row_gate_mm=np.array([5.0, np.nan]))
+    assert r.pairs().tolist() == [[1, 1]]
+    # ... while one that it moved by 20 mm makes the pair nearly free; before_mm stays measured.
+    pred[0] = [20.0, 0, 800]
+    r = match(base, cur, gate_mm=50.0, prediction_mm=pred, row_gate_mm=np.array([5.0, np.nan]))
+    d = r.displacements[0]
+    assert (d.baseline_index, d.current_index) == (0, 0) and d.cost < 1.0
+    np.testing.assert_allclose(d.displacement_mm, [20.0, 0, 0])
+    with pytest.raises(MatcherError, match="prediction_mm must have shape"):
+        match(base, cur, prediction_mm=np.zeros((3, 3)))
+    with pytest.raises(MatcherError, match="row_gate_mm must have"):
+        match(base, cur, row_gate_mm=np.zeros(5))

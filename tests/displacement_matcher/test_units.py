@@ -7,13 +7,13 @@ import pytest
 
 from armourcam.field import dolos_geometry, make_field
 from displacement_matcher import MatcherError, match
+from displacement_matcher.refine import match_units
 from displacement_matcher.rigid import kabsch, rigid_fit
 from displacement_matcher.units import (
     UnitMap,
     UnitSpec,
     group_fiducials,
     load_unit_map,
-    match_units,
     parse_unit_map,
     unit_motions,
 )
@@ -76,7 +76,7 @@ def test_unit_motion_matches_ground_truth_on_a_field() -> None:
         tol = 1.5 if u.method == "rigid" else 6.0  # translation-only ignores the rotation
         np.testing.assert_allclose(u.translation_mm, truth, atol=tol, err_msg=u.unit)
         if not field.moved[owners[0]]:
-            assert u.distance_mm < 1.0
+            assert u.distance_mm < 2.0  # noise only (sigma_z 0.3 mm per state)
         measured += 1
     assert measured >= 55
 
@@ -87,7 +87,7 @@ def test_overturned_unit_is_flagged() -> None:
     umap = _template()
     R0 = np.diag([1.0, -1.0, -1.0])  # local z towards the camera
     c0 = np.array([0.0, 0.0, 800.0])
-    flip = _rot([1.0, 0.0, 0.0], 180.0) @ R0 if False else R0 @ _rot([1.0, 0.0, 0.0], 180.0)
+    flip = R0 @ _rot([1.0, 0.0, 0.0], 180.0)  # about the shank (local x)
     c1 = c0 + np.array([8.0, 3.0, 0.0])
 
     def poses(R: np.ndarray, c: np.ndarray) -> list[FiducialPose]:
@@ -132,7 +132,7 @@ def test_explicit_unit_map_and_unknown_codes(tmp_path: pytest.TempPathFactory) -
         FiducialPose(7, np.array([150.0, 0, 800]), np.array([0, 0, -1.0]), np.eye(3) * 0.01),
     ]
     cur = [
-        FiducialPose(p.code, p.position_mm + [2.0, 0, 0], p.normal, p.covariance_mm2)
+        FiducialPose(p.code, p.position_mm + np.array([2.0, 0, 0]), p.normal, p.covariance_mm2)
         for p in base[:2]
     ] + [base[2]]
     units, unassigned = unit_motions(match(base, cur), unit_map=umap)

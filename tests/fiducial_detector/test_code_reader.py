@@ -84,7 +84,9 @@ def test_strict_config_rejects_weak_reads() -> None:
     scene, c, ax, ang = _truth_ellipse("dot", 1.0, 40.0, 5)
     # Misplaced by a quarter of the track width: bits still read, but not with margin to spare.
     strict = ReaderConfig(max_hamming=0, weak_margin=0.99, max_weak_bits=0)
-    r = read_codes(scene.image, 255.0, get_design("dot"), c + [[0.0, 3.0]], ax, ang, None, strict)
+    r = read_codes(
+        scene.image, 255.0, get_design("dot"), c + np.array([[0.0, 3.0]]), ax, ang, None, strict
+    )
     assert not r.accepted[0]
     ok = read_codes(scene.image, 255.0, get_design("dot"), c, ax, ang)
     assert ok.accepted[0]

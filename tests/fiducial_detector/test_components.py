@@ -11,8 +11,8 @@ from fiducial_detector.components import outer_boundaries
 def _ellipse_mask(shape: tuple[int, int], centre, axes, angle_deg, thickness=-1):  # type: ignore[no-untyped-def]
     img = np.zeros(shape, np.uint8)
     # Draw with sub-pixel precision (shift=4) for an accurate reference.
-    c = (int(round(centre[0] * 16)), int(round(centre[1] * 16)))
-    ax = (int(round(axes[0] * 16)), int(round(axes[1] * 16)))
+    c = (round(centre[0] * 16), round(centre[1] * 16))
+    ax = (round(axes[0] * 16), round(axes[1] * 16))
     cv2.ellipse(img, c, ax, angle_deg, 0, 360, 255, thickness, cv2.LINE_8, 4)
     return img
 

@@ -11,10 +11,6 @@ import pytest
 from numpy.typing import NDArray
 
 from armourcam.render import (
-    BACKGROUND,
-    BLACK,
-    WHITE,
-    Patch,
     RenderedScene,
     Target,
     render,
@@ -33,21 +29,6 @@ from pose_estimator.camera import CameraModel
 
 FOCAL = 2000.0
 DIAMETER = 7.1
-
-
-def _backdrop(z: float) -> Patch:
-    """A plain backdrop at the background level behind the target.
-
-    The renderer currently blends edge pixels of a patch drawn over an empty canvas with NaN and
-    turns them into background; a backdrop gives every patch something to blend with.
-    """
-    level = (BACKGROUND - BLACK) / (WHITE - BLACK)
-    return Patch(
-        np.diag([1.0, -1.0, -1.0]),
-        np.array([0.0, 0.0, 1.5 * z]),
-        1e5,
-        lambda x, y: np.full(np.shape(x), level),
-    )
 
 
 def _scene(
@@ -70,7 +51,6 @@ def _scene(
     return render(
         cam,
         [target],
-        clutter=[_backdrop(z)],
         blur_sigma=blur,
         noise=noise,
         rng=np.random.default_rng(seed),
@@ -299,3 +279,19 @@ def test_noise_estimate(noise: float) -> None:
     """The image-noise estimate that scales the covariance is within 10 % of the truth."""
     scene = _scene("ring", 60, 30, 0.5, noise, seed=6)
     assert estimate_noise(scene.image) == pytest.approx(noise * 255, rel=0.1)
+
+
+def test_polarity_vote_picks_the_seeded_edge_of_a_thin_annulus() -> None:
+    """Without ``dark_inside`` the nearest edge's polarity wins: the ring's two annulus edges
+    (opposite polarities, 0.2 R apart) are each found from their own seed."""
+    design = get_design("ring")
+    scene = _scene("ring", 45, 30, 0.7, 0.01, seed=3)
+    rng = np.random.default_rng(4)
+    for circle, conic in zip(design.circles[:2], scene.truth[0].conics[:2], strict=True):
+        truth = _truth(conic)
+        seed = _perturbed_seed(truth, rng)
+        voted = fit_ellipse(scene.image, seed, radius=circle.radius)
+        given = fit_ellipse(scene.image, seed, radius=circle.radius, dark_inside=circle.dark_inside)
+        assert voted is not None and given is not None
+        assert np.allclose(voted.center_px, given.center_px, atol=1e-9)
+        assert abs(voted.semi_major - truth[2]) < 0.1

@@ -81,7 +81,9 @@ def synthetic_detection(
         J = axes_to_params_jacobian(a, b, ang)
         Jinv = np.linalg.inv(J)
         cov = Jinv @ cov_s @ Jinv.T
-        ellipses.append(Ellipse((float(u), float(v)), float(a), float(b), float(ang), cov, circle.radius))
+        ellipses.append(
+            Ellipse((float(u), float(v)), float(a), float(b), float(ang), cov, circle.radius)
+        )
     return FiducialDetection(
         code=target.code,
         hamming=0,

@@ -59,7 +59,11 @@ def test_distortion_round_trip(model: str) -> None:
             {
                 "image_width": 640,
                 "image_height": 480,
-                "camera_matrix": {"rows": 3, "cols": 3, "data": [500, 0, 320, 0, 500, 240, 0, 0, 1]},
+                "camera_matrix": {
+                    "rows": 3,
+                    "cols": 3,
+                    "data": [500, 0, 320, 0, 500, 240, 0, 0, 1],
+                },
                 "distortion_model": "fisheye_magic",
                 "distortion_coefficients": {"data": [0, 0, 0, 0]},
             },
@@ -69,7 +73,11 @@ def test_distortion_round_trip(model: str) -> None:
             {
                 "image_width": 640,
                 "image_height": 480,
-                "camera_matrix": {"rows": 3, "cols": 3, "data": [500, 0, 320, 0, 500, 240, 0, 0, 1]},
+                "camera_matrix": {
+                    "rows": 3,
+                    "cols": 3,
+                    "data": [500, 0, 320, 0, 500, 240, 0, 0, 1],
+                },
                 "distortion_model": "plumb_bob",
                 "distortion_coefficients": {"data": [0.1, 0.0, 0.0]},
             },
@@ -87,7 +95,11 @@ def test_distortion_round_trip(model: str) -> None:
             {
                 "image_width": 0,
                 "image_height": 480,
-                "camera_matrix": {"rows": 3, "cols": 3, "data": [500, 0, 320, 0, 500, 240, 0, 0, 1]},
+                "camera_matrix": {
+                    "rows": 3,
+                    "cols": 3,
+                    "data": [500, 0, 320, 0, 500, 240, 0, 0, 1],
+                },
             },
             "must be positive",
         ),

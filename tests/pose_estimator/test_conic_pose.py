@@ -27,7 +27,9 @@ def _normalised_cone(conic: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("slant_deg", [0.0, 1.0, 20.0, 45.0, 70.0, 85.0])
-@pytest.mark.parametrize("position", [(0.0, 0.0, 700.0), (180.0, -120.0, 650.0), (-90.0, 60.0, 900.0)])
+@pytest.mark.parametrize(
+    "position", [(0.0, 0.0, 700.0), (180.0, -120.0, 650.0), (-90.0, 60.0, 900.0)]
+)
 def test_circle_pose_recovers_truth_as_one_of_two(
     slant_deg: float, position: tuple[float, float, float]
 ) -> None:

@@ -14,7 +14,9 @@ F_PX = 6507.0  # the paper's benchmark camera
 CAMERA = CameraModel.ideal(3008, 2000, F_PX)
 
 
-def _target(design: str, slant_deg: float, position: tuple[float, float, float], tilt: float = 0.4) -> Target:
+def _target(
+    design: str, slant_deg: float, position: tuple[float, float, float], tilt: float = 0.4
+) -> Target:
     R = rotation_from_slant_tilt(np.radians(slant_deg), tilt=tilt, spin=1.0)
     return Target(7, design, 7.1, R, np.array(position))
 
@@ -126,7 +128,9 @@ def test_covariance_is_calibrated(design: str, size_px: int, slant_deg: float) -
 
 def test_bad_inputs_are_named() -> None:
     """A bad diameter or a non-detection raises PoseError naming the problem."""
-    det = synthetic_detection(CAMERA, _target("ring", 10.0, (0, 0, 700.0)), 0.0, np.random.default_rng(0))
+    det = synthetic_detection(
+        CAMERA, _target("ring", 10.0, (0, 0, 700.0)), 0.0, np.random.default_rng(0)
+    )
     with pytest.raises(PoseError, match="diameter_mm"):
         estimate([det], CAMERA, -7.1)
     with pytest.raises(PoseError, match="FiducialDetection"):
@@ -144,3 +148,55 @@ def test_covariance_fallback_when_fit_reports_none() -> None:
     (pose,) = estimate([replace(det, ellipses=blank)], CAMERA, 7.1)
     np.testing.assert_allclose(pose.position_mm, target.position_mm, atol=1e-3)
     assert np.all(np.isfinite(pose.sigma_mm)) and np.all(pose.sigma_mm > 0)
+
+
+def _detected_poses(
+    camera: CameraModel, target: Target, n: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and sigmas of ``n`` rendered, detected and posed images."""
+    from armourcam.render import render
+    from fiducial_detector import detect
+
+    rng = np.random.default_rng(seed)
+    pos, sig = [], []
+    for _ in range(n):
+        scene = render(camera, [target], blur_sigma=0.5, noise=0.01, rng=rng)
+        found = detect(scene.image, design="ring" if target.design == "ring" else "dot")
+        dets = [d for d in found if d.code == target.code]
+        assert len(dets) == 1
+        (pose,) = estimate(dets, camera, target.diameter_mm)
+        pos.append(pose.position_mm)
+        sig.append(pose.sigma_mm)
+    return np.array(pos), np.array(sig)
+
+
+@pytest.mark.parametrize(("design", "slant_deg"), [("ring", 30.0), ("ring", 60.0), ("dot", 30.0)])
+def test_end_to_end_through_the_detector(design: str, slant_deg: float) -> None:
+    """Rendered 60 px fiducials, the real detector, then pose: z well inside the paper's error."""
+    z = F_PX * 7.1 / 60.0
+    cam = CameraModel.ideal(110, 110, F_PX)
+    target = _target(design, slant_deg, (0.3, -0.2, z))
+    pos, sig = _detected_poses(cam, target, 6, seed=21)
+    err = pos - target.position_mm
+    # Paper Table 2, 60 px, blur 0.5, noise 1 %: 3.986 mm (its dot design).
+    assert np.max(np.abs(err[:, 2])) < 3.986 / (4.0 if design == "ring" else 2.0)
+    assert np.max(np.abs(err[:, :2])) < 0.05
+    assert np.all(sig[:, 2] < 1.0)
+
+
+def test_end_to_end_with_lens_distortion() -> None:
+    """A fiducial in a strongly distorted corner, rendered through the lens, detected and posed."""
+    K = np.array([[1500.0, 0.0, 319.5], [0.0, 1500.0, 239.5], [0.0, 0.0, 1.0]])
+    cam = CameraModel(640, 480, K, "plumb_bob", np.array([-0.45, 0.3, 0.0, 0.0, 0.0]))
+    target = _target("ring", 25.0, (-27.0, -19.8, 180.0))
+    pos, _ = _detected_poses(cam, target, 3, seed=4)
+    assert np.max(np.linalg.norm(pos - target.position_mm, axis=1)) < 0.1
+    # The same detections read through an ideal lens are off by far more.
+    from armourcam.render import render
+    from fiducial_detector import detect
+
+    scene = render(cam, [target], blur_sigma=0.5, noise=0.01, rng=np.random.default_rng(4))
+    (naive,) = estimate(
+        detect(scene.image, design="ring"), CameraModel(640, 480, K, "plumb_bob", np.zeros(5)), 7.1
+    )
+    assert np.linalg.norm(naive.position_mm - target.position_mm) > 0.5

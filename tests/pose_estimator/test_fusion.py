@@ -12,7 +12,11 @@ from pose_estimator import CameraModel, FiducialPose, PoseError, estimate, fuse,
 CAMERA = CameraModel.ideal(3008, 2000, 6507.0)
 TARGETS = [
     Target(4, "ring", 7.1, rotation_from_slant_tilt(np.radians(s), 0.5), np.array(p))
-    for s, p in [(20.0, (-60.0, 10.0, 800.0)), (55.0, (40.0, -30.0, 820.0)), (35.0, (40.0, 50.0, 790.0))]
+    for s, p in [
+        (20.0, (-60.0, 10.0, 800.0)),
+        (55.0, (40.0, -30.0, 820.0)),
+        (35.0, (40.0, 50.0, 790.0)),
+    ]
 ]
 
 
@@ -53,14 +57,18 @@ def test_fusion_rejects_an_outlier_frame() -> None:
     fused = fuse(frames)
     assert sorted(p.n_frames for p in fused) == [8, 9, 9]
     for a, b in zip(good, fused, strict=True):
-        assert np.linalg.norm(a.position_mm - b.position_mm) < 3 * np.sqrt(np.trace(a.covariance_mm2))
+        assert np.linalg.norm(a.position_mm - b.position_mm) < 3 * np.sqrt(
+            np.trace(a.covariance_mm2)
+        )
 
 
 def test_fusion_drops_spurious_tracks_and_names_bad_input() -> None:
     """A detection seen in one frame of ten does not become a fused fiducial; bad calls raise."""
     rng = np.random.default_rng(2)
     frames = _frames(10, rng)
-    frames[3].append(FiducialPose(9, np.array([0.0, 0.0, 500.0]), np.array([0, 0, -1.0]), np.eye(3)))
+    frames[3].append(
+        FiducialPose(9, np.array([0.0, 0.0, 500.0]), np.array([0, 0, -1.0]), np.eye(3))
+    )
     assert all(p.code == 4 for p in fuse(frames))
     with pytest.raises(PoseError, match="no frames"):
         fuse([])

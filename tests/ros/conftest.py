@@ -126,12 +126,12 @@ class Probe:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
-    def spin_until(self, done: Callable[[], bool], timeout: float) -> bool:
-        """Spin until ``done()`` or ``timeout`` seconds; returns ``done()``."""
+    def spin_until(self, done: Callable[[], object], timeout: float) -> bool:
+        """Spin until ``done()`` is truthy or ``timeout`` seconds pass; returns ``bool(done())``."""
         deadline = time.monotonic() + timeout
         while not done() and time.monotonic() < deadline:
             self.executor.spin_once(timeout_sec=0.05)
-        return done()
+        return bool(done())
 
     def spin_for(self, seconds: float) -> None:
         self.spin_until(lambda: False, seconds)

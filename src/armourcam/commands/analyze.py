@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     )
     for r in result.runs:
         summary = r.report.get("summary", {})
-        print(f"run {r.run_id}: settled={r.report.get('settled')} summary={summary}")
+        print(f"run {r.run_id}: settled={r.report.get('settled')}: {summary.get('text', summary)}")
     for n in result.notices:
         if n.startswith("error"):
             print(n)

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 _SKIP_TYPES = ("sensor_msgs/msg/PointCloud2", "visualization_msgs/msg/MarkerArray")
+_SKIP_PREFIXES = ("/armourcam/report", "/diagnostics", "/rosout")
 
 
 def register(subparsers: Any) -> None:
@@ -86,9 +87,7 @@ def default_remaps(bag: Path, topics: list[str] | None) -> dict[str, str]:
             if topics is not None:
                 if name not in topics:
                     skip[name] = ""
-            elif info.msgtype in _SKIP_TYPES or name.startswith("/armourcam/report"):
-                skip[name] = ""
-            elif name == "/diagnostics" or name.startswith("/rosout"):
+            elif info.msgtype in _SKIP_TYPES or name.startswith(_SKIP_PREFIXES):
                 skip[name] = ""
     return skip
 

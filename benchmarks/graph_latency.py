@@ -1,0 +1,228 @@
+"""Graph latency benchmark: a 3008x2000 session replayed at 5 fps through the three node processes.
+
+Measures, over a configurable replay (default 5 minutes):
+
+- per-frame latency from image publication (the header stamp, set at publication) to the arrival
+  of the pose estimator's PoseArray for that frame (p50, p95, max);
+- frames published vs PoseArrays received (reliable QoS: none may be lost);
+- CPU per node process (``/proc/<pid>/stat`` utime + stime over the run, % of one core) and
+  resident memory sampled through the run (first, max, last: flat means no unbounded queue).
+
+Targets (issue 5): p95 <= 150 ms, no frame dropped in reliable mode. The frames are the 6 MP
+session bag (``armourcam make-bags --large``), replayed in a loop with its hall events, so the
+matcher does its real work (baseline, runs, settling, reports) during the measurement.
+
+Usage::
+
+    .venv/bin/python -m benchmarks.graph_latency [--duration 300] [--fps 5] [--bag PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_BAG = REPO / "bags" / "large" / "session_6mp"
+TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def _proc_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of a process and its waited-for children."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    utime, stime = int(fields[11]), int(fields[12])
+    return (utime + stime) / TICKS
+
+
+def _proc_rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def _load(bag: Path) -> tuple[list[tuple[str, Any]], Any]:
+    """The bag's sequence: ("image", ndarray) / ("active", bool) / ("run_id", str); camera."""
+    from armourcam import bagio, image_codec
+
+    seq: list[tuple[str, Any]] = []
+    with bagio.open_bag(bag) as b:
+        camera = b.camera_model()
+        img_topic = b.image_topic()
+        for m in b.messages():
+            if m.topic == img_topic:
+                seq.append(("image", image_codec.decode(m.message)))
+            elif m.msgtype == "std_msgs/msg/Bool":
+                seq.append(("active", bool(m.message.data)))
+            elif m.msgtype == "std_msgs/msg/String":
+                seq.append(("run_id", str(m.message.data)))
+    return seq, camera
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark and print its table."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--bag", type=Path, default=DEFAULT_BAG)
+    ap.add_argument("--fps", type=float, default=5.0)
+    ap.add_argument("--duration", type=float, default=300.0, help="seconds of replay (300)")
+    ap.add_argument("--queue-depth", type=int, default=10)
+    args = ap.parse_args(argv)
+
+    os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 101)
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    if not args.bag.exists():
+        print(f"{args.bag} missing: run 'armourcam make-bags --large' first", file=sys.stderr)
+        return 2
+    seq, camera = _load(args.bag)
+    n_images = sum(1 for k, _ in seq if k == "image")
+    print(f"loaded {n_images} frames {camera.width}x{camera.height} from {args.bag}")
+
+    import rclpy
+    import yaml
+    from rclpy.executors import SingleThreadedExecutor
+
+    from armourcam import graph, image_codec
+    from armourcam.graph import event_qos, stream_qos
+
+    tmp = Path(tempfile.mkdtemp(prefix="armourcam-bench-"))
+    params = tmp / "params.yaml"
+    depth = args.queue_depth
+    params.write_text(
+        yaml.safe_dump(
+            {
+                "fiducial_detector": {"ros__parameters": {"queue_depth": depth}},
+                "pose_estimator": {"ros__parameters": {"queue_depth": depth}},
+                "displacement_matcher": {
+                    "ros__parameters": {
+                        "queue_depth": depth,
+                        "data_dir": str(tmp / "data"),
+                        "baseline_frames": 4,
+                    }
+                },
+            }
+        )
+    )
+    procs = graph.launch_processes(str(params), log_dir=tmp / "logs")
+    rclpy.init()
+    node = rclpy.create_node("armourcam_bench")
+    from geometry_msgs.msg import PoseArray
+    from sensor_msgs.msg import CameraInfo, Image
+    from std_msgs.msg import Bool, String
+
+    from armourcam import bagio
+
+    qos = stream_qos("reliable", depth)
+    pub_img = node.create_publisher(Image, "/camera/image_raw", qos)
+    pub_info = node.create_publisher(CameraInfo, "/camera/camera_info", qos)
+    pub_active = node.create_publisher(Bool, "/hall/run_active", event_qos())
+    pub_id = node.create_publisher(String, "/hall/run_id", event_qos())
+    sent: dict[int, float] = {}
+    latency_ms: list[float] = []
+    lock = threading.Lock()
+
+    def on_poses(msg: PoseArray) -> None:
+        t = time.time_ns()
+        key = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        with lock:
+            if key in sent:
+                latency_ms.append((t - key) / 1e6)
+
+    sub = node.create_subscription(PoseArray, "/armourcam/pose_array", on_poses, qos)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    info_fields = bagio.camera_info_fields(camera, style="rclpy")
+    mem: dict[str, list[float]] = {n: [] for n in procs}
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and (
+            pub_img.get_subscription_count() == 0 or sub.get_publisher_count() == 0
+        ):
+            time.sleep(0.1)
+        time.sleep(1.0)
+        cpu0 = {n: _proc_cpu_s(p.pid) for n, p in procs.items()}
+        t_start = time.monotonic()
+        period = 1.0 / args.fps
+        next_t = time.monotonic()
+        published = 0
+        next_mem = 0.0
+        i = 0
+        while time.monotonic() - t_start < args.duration:
+            kind, value = seq[i % len(seq)]
+            i += 1
+            if kind == "active":
+                pub_active.publish(Bool(data=value))
+                continue
+            if kind == "run_id":
+                pub_id.publish(String(data=value))
+                continue
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            next_t += period
+            now = node.get_clock().now()
+            stamp = now.to_msg()
+            info = CameraInfo(**info_fields)
+            info.header.stamp = stamp
+            pub_info.publish(info)
+            msg = Image(**image_codec.image_to_msg_fields(value))
+            msg.header.stamp = stamp
+            msg.header.frame_id = "armourcam_camera"
+            with lock:
+                sent[now.nanoseconds] = time.monotonic()
+            pub_img.publish(msg)
+            published += 1
+            if time.monotonic() - t_start >= next_mem:
+                for n, p in procs.items():
+                    mem[n].append(_proc_rss_mb(p.pid))
+                next_mem += 10.0
+        wall = time.monotonic() - t_start
+        drain = time.monotonic() + 10.0
+        while time.monotonic() < drain and len(latency_ms) < published:
+            time.sleep(0.1)
+        cpu1 = {n: _proc_cpu_s(p.pid) for n, p in procs.items()}
+        for n, p in procs.items():
+            mem[n].append(_proc_rss_mb(p.pid))
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        graph.stop_processes(procs.values())
+
+    lat = np.asarray(latency_ms)
+    print()
+    print(f"## graph latency, {camera.width}x{camera.height} mono8 at {args.fps:g} fps, "
+          f"{wall:.0f} s, reliable QoS depth {depth}, {os.cpu_count()} cores (shared)")
+    print()
+    print("| metric | value | target |")
+    print("| --- | --- | --- |")
+    print(f"| frames published | {published} | |")
+    print(f"| pose arrays received | {len(lat)} | all |")
+    print(f"| frames lost | {published - len(lat)} | 0 |")
+    if lat.size:
+        print(f"| latency p50 (ms) | {np.percentile(lat, 50):.1f} | |")
+        print(f"| latency p95 (ms) | {np.percentile(lat, 95):.1f} | <= 150 |")
+        print(f"| latency max (ms) | {lat.max():.1f} | |")
+    print()
+    print("| node | CPU (% of one core) | RSS first / max / last (MB) |")
+    print("| --- | --- | --- |")
+    for n in procs:
+        cpu = 100.0 * (cpu1[n] - cpu0[n]) / wall
+        m = mem[n]
+        print(f"| {n} | {cpu:.0f} | {m[0]:.0f} / {max(m):.0f} / {m[-1]:.0f} |")
+    runs = sorted((tmp / "data" / "runs").glob("*.json")) if (tmp / "data" / "runs").is_dir() else []
+    print(f"\nmatcher reported {len(runs)} runs during the replay; logs in {tmp / 'logs'}")
+    return 0 if published == len(lat) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

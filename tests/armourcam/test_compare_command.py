@@ -1,0 +1,92 @@
+"""``armourcam compare`` end to end: render -> detect -> estimate -> match -> report."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from armourcam.cli import main
+from armourcam.field import Field, make_field
+from armourcam.render import render
+from pose_estimator.camera import CameraModel
+
+DIAMETER_MM = 10.0
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> tuple[Field, Path]:
+    """A 16-dolos field rendered before and after, with its camera and unit-map files."""
+    d = tmp_path_factory.mktemp("compare")
+    cam = CameraModel.ideal(1200, 800, 2400.0)
+    f = make_field(16, seed=3, camera=cam, moved_fraction=0.25, overturned_fraction=0.07)
+    for k, (name, state) in enumerate((("before", f.before), ("after", f.after))):
+        rng = np.random.default_rng(10 + k)
+        img = render(cam, state.targets("ring", DIAMETER_MM), blur_sigma=0.5, noise=0.01, rng=rng)
+        cv2.imwrite(str(d / f"{name}.png"), img.image)
+    (d / "camera.yaml").write_text(yaml.safe_dump(cam.to_dict()))
+    g = f.geometry
+    tmpl = {
+        "codes": list(g.codes),
+        "positions_mm": {c: g.positions_mm[k].tolist() for k, c in enumerate(g.codes)},
+        "normals": {c: g.normals[k].tolist() for k, c in enumerate(g.codes)},
+    }
+    (d / "units.yaml").write_text(yaml.safe_dump({"template": tmpl}))
+    return f, d
+
+
+def test_compare_json_and_files(
+    scene: tuple[Field, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The JSON has the issue's keys; displaced units are the truly displaced ones."""
+    f, d = scene
+    out = tmp_path / "report"
+    args = [
+        "compare", str(d / "before.png"), "--after", str(d / "after.png"),
+        "--camera", str(d / "camera.yaml"), "--diameter-mm", str(DIAMETER_MM),
+        "--out", str(out), "--units", str(d / "units.yaml"),
+        "--dn-mm", f"{f.geometry.dn_mm}", "--section-width-mm", f"{f.section_width_mm}", "--json",
+    ]  # fmt: skip
+    assert main(args) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert {"fiducials", "units", "summary"} <= set(doc)
+    for key in ("label", "code_before", "code_after", "before_mm", "after_mm", "displacement_mm"):
+        assert key in doc["fiducials"][0]
+    for key in ("unit", "translation_mm", "rotation_deg", "displaced"):
+        assert key in doc["units"][0]
+    s = doc["summary"]
+    assert s["thresholds"]["displaced_mm"] == pytest.approx(f.geometry.dn_mm)
+    # Truth: overturned units and units whose centre moved >= Dn.
+    moved = np.linalg.norm(f.after.centres_mm - f.before.centres_mm, axis=1)
+    truth = int(np.sum(f.overturned | (f.moved & (moved >= f.geometry.dn_mm))))
+    assert s["displaced_units"] == truth
+    assert s["n_od"] == pytest.approx(truth * f.geometry.dn_mm / f.section_width_mm, rel=1e-3)
+    for name in ("report.json", "fiducials.csv", "units.csv", "overlay.png", "plot.png"):
+        assert (out / name).is_file()
+    assert cv2.imread(str(out / "overlay.png")).shape == (800, 1200, 3)
+
+
+def test_compare_human_summary_and_bad_inputs(
+    scene: tuple[Field, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without --json a summary with thresholds; bad inputs exit 2 with a one-line error."""
+    _, d = scene
+    base = ["--camera", str(d / "camera.yaml"), "--out", str(tmp_path / "r")]
+    assert main(["compare", str(d / "before.png"), "--after", str(d / "before.png"), *base]) == 0
+    text = capsys.readouterr().out
+    assert "displaced 0" in text and "thresholds: displaced >=" in text
+    assert main(["compare", str(d / "nope.png"), "--after", str(d / "after.png"), *base]) == 2
+    assert "image not found" in capsys.readouterr().err
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((10, 10), np.uint8))
+    assert main(["compare", str(small), "--after", str(d / "after.png"), *base]) == 2
+    assert "calibration" in capsys.readouterr().err
+    bad_units = tmp_path / "u.yaml"
+    bad_units.write_text("units: {A: {codes: [500]}}\n")
+    args = ["compare", str(d / "before.png"), "--after", str(d / "after.png"), *base]
+    assert main([*args, "--units", str(bad_units)]) == 2
+    assert "unknown code 500" in capsys.readouterr().err
