@@ -92,7 +92,7 @@ def match_units(
         raise MatcherError(f"refine_passes must be >= 0, got {refine_passes}")
     result = match(baseline, current, **match_kw)
     groups = assign_units(result, unit_map=unit_map, span_mm=span_mm, rigid_tol_mm=rigid_tol_mm)
-    kw = {
+    kw: dict[str, Any] = {
         "unit_map": unit_map,
         "span_mm": span_mm,
         "rigid_tol_mm": rigid_tol_mm,
@@ -100,7 +100,7 @@ def match_units(
         "groups": groups,
         "centres": {},
     }
-    units, unassigned = unit_motions(result, **kw)  # type: ignore[arg-type]
+    units, unassigned = unit_motions(result, **kw)
     span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
     template = unit_map.template if unit_map is not None else None
     explicit = unit_map is not None and bool(unit_map.units)
@@ -134,7 +134,7 @@ def match_units(
             exclude_pairs=sorted(excluded),
             **match_kw,
         )
-        units, unassigned = unit_motions(result, **kw)  # type: ignore[arg-type]
+        units, unassigned = unit_motions(result, **kw)
         passes += 1
     return UnitAnalysis(result, units, unassigned, passes)
 

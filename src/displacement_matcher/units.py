@@ -444,10 +444,10 @@ def unit_motions(
     """Per-unit rigid motion from a fiducial matching.
 
     Units come from :func:`assign_units` (or ``groups``, its earlier result). ``centres`` caches
-    each unit's template-located origin across calls on the same baseline (filled in here). Appeared current
-    fiducials are attached to the nearest unit that already has current fiducials (or lost all of
-    them) when their code is free on it, within the unit span: the faces an overturned unit now
-    shows.
+    each unit's template-located origin across calls on the same baseline (filled in here).
+    Appeared current fiducials are attached to the nearest unit that already has current
+    fiducials (or lost all of them) when their code is free on it, within the unit span: the faces
+    an overturned unit now shows.
 
     Returns
     -------

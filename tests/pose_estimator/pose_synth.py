@@ -26,7 +26,7 @@ from pose_estimator.conic_pose import (
 
 def edge_fit_covariance(params: NDArray[np.float64], sigma_px: float) -> NDArray[np.float64]:
     """Covariance of ``(u, v, s11, s12, s22)`` of an ellipse fitted to its whole boundary."""
-    t = np.linspace(0.0, 2.0 * np.pi, 720, endpoint=False)
+    t = np.linspace(0.0, 2.0 * np.pi, 180, endpoint=False)
     w = np.stack([np.cos(t), np.sin(t)], axis=1)
     S = np.array([[params[2], params[3]], [params[3], params[4]]])
     tangent = np.stack([-np.sin(t), np.cos(t)], axis=1) @ S.T
