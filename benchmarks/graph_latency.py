@@ -200,8 +200,10 @@ def main(argv: list[str] | None = None) -> int:
 
     lat = np.asarray(latency_ms)
     print()
-    print(f"## graph latency, {camera.width}x{camera.height} mono8 at {args.fps:g} fps, "
-          f"{wall:.0f} s, reliable QoS depth {depth}, {os.cpu_count()} cores (shared)")
+    print(
+        f"## graph latency, {camera.width}x{camera.height} mono8 at {args.fps:g} fps, "
+        f"{wall:.0f} s, reliable QoS depth {depth}, {os.cpu_count()} cores (shared)"
+    )
     print()
     print("| metric | value | target |")
     print("| --- | --- | --- |")
@@ -219,7 +221,9 @@ def main(argv: list[str] | None = None) -> int:
         cpu = 100.0 * (cpu1[n] - cpu0[n]) / wall
         m = mem[n]
         print(f"| {n} | {cpu:.0f} | {m[0]:.0f} / {max(m):.0f} / {m[-1]:.0f} |")
-    runs = sorted((tmp / "data" / "runs").glob("*.json")) if (tmp / "data" / "runs").is_dir() else []
+    runs = (
+        sorted((tmp / "data" / "runs").glob("*.json")) if (tmp / "data" / "runs").is_dir() else []
+    )
     print(f"\nmatcher reported {len(runs)} runs during the replay; logs in {tmp / 'logs'}")
     return 0 if published == len(lat) else 1
 

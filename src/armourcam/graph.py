@@ -368,6 +368,7 @@ class Replayer:
         qos: str = "reliable",
         depth: int = 100,
         confirm_topic: str | None = None,
+        downstream_topic: str | None = "/armourcam/poses",
         confirm_timeout: float = 30.0,
     ) -> None:
         from std_msgs.msg import Header  # noqa: F401  (ensures std_msgs is importable early)
@@ -379,18 +380,44 @@ class Replayer:
         self.confirm_timeout = confirm_timeout
         self._pubs: dict[str, Any] = {}
         self._confirmed: set[tuple[int, int]] = set()
+        self._downstream: set[tuple[int, int]] = set()
         self._cond = threading.Condition()
+        self.downstream_sub: Any = None
         if confirm_topic:
             from sensor_msgs.msg import PointCloud2
 
             node.create_subscription(
                 PointCloud2, confirm_topic, self._on_confirm, stream_qos("reliable", 100)
             )
+            if downstream_topic:
+                self.downstream_sub = node.create_subscription(
+                    PointCloud2, downstream_topic, self._on_downstream, stream_qos("reliable", 100)
+                )
 
     def _on_confirm(self, msg: Any) -> None:
         with self._cond:
             self._confirmed.add((msg.header.stamp.sec, msg.header.stamp.nanosec))
             self._cond.notify_all()
+
+    def _on_downstream(self, msg: Any) -> None:
+        with self._cond:
+            self._downstream.add((msg.header.stamp.sec, msg.header.stamp.nanosec))
+            self._cond.notify_all()
+
+    def wait_downstream(self, stamp: Any, timeout: float) -> bool:
+        """Wait for the pose estimator's output stamped ``stamp``; True when none is running."""
+        if self.downstream_sub is None or self.downstream_sub.get_publisher_count() == 0:
+            return True
+        key = (stamp.sec, stamp.nanosec)
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while key not in self._downstream:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+            self._downstream.discard(key)
+        return True
 
     def publisher(self, topic: str, msgtype: str) -> Any:
         """The publisher for ``topic`` (created on first use with the right QoS)."""
@@ -510,6 +537,7 @@ def replay_bag(
         # between are not delivered to a volatile reader. Give discovery a moment to finish.
         time.sleep(match_grace_s)
         last_ns = [0]
+        last_info: list[tuple[str, str, Any]] = []
         t0_bag: int | None = None
         t0_wall = time.monotonic()
         for i, (topic, msgtype, t_ns, obj) in enumerate(items):
@@ -524,6 +552,8 @@ def replay_bag(
                 msg.header.stamp = _stamp_now(node, last_ns)
             replayer.publisher(topic, msgtype).publish(msg)
             published[topic] = published.get(topic, 0) + 1
+            if msgtype == "sensor_msgs/msg/CameraInfo":
+                last_info[:] = [(topic, msgtype, msg)]
             if msgtype.startswith("std_msgs/") and as_fast_as_consumed:
                 # Hall events travel on their own topics: without recorded gaps, give each a
                 # head start so the matcher orders it against the frames around it.
@@ -533,6 +563,13 @@ def replay_bag(
                 if as_fast_as_consumed:
                     if replayer.wait_confirmed(msg.header.stamp):
                         confirmed += 1
+                        # The pose estimator holds frames until it has a camera; camera info
+                        # sent while discovery was still settling may not have reached it.
+                        if not replayer.wait_downstream(msg.header.stamp, 3.0) and last_info:
+                            info_topic, info_type, info = last_info[-1]
+                            info.header.stamp = _stamp_now(node, last_ns)
+                            replayer.publisher(info_topic, info_type).publish(info)
+                            replayer.wait_downstream(msg.header.stamp, replayer.confirm_timeout)
                     else:
                         node.get_logger().error(
                             f"no output on {confirm_topic} for frame {frames} within "

@@ -19,6 +19,7 @@ from .errors import MatcherError
 from .types import DamageSummary, DamageThresholds, UnitMotion
 
 DEFAULT_MOVED_MM = 2.0
+DEFAULT_ROTATED_DEG = 10.0  # still units' fitted rotations stay below ~5 deg (matcher_field)
 
 
 def thresholds(
@@ -27,6 +28,7 @@ def thresholds(
     displaced_mm: float | None = None,
     displaced_dn: float | None = None,
     moved_mm: float = DEFAULT_MOVED_MM,
+    rotated_deg: float = DEFAULT_ROTATED_DEG,
     overturn_deg: float = 90.0,
     overturned_displaced: bool = True,
     lost_displaced: bool = False,
@@ -54,10 +56,15 @@ def thresholds(
         )
     if not 0 < overturn_deg <= 180:
         raise MatcherError(f"overturn angle must be in (0, 180] deg, got {overturn_deg!r}")
+    if not 0 < rotated_deg <= overturn_deg:
+        raise MatcherError(
+            f"rotation threshold must be in (0, {overturn_deg:g}] deg, got {rotated_deg!r}"
+        )
     return DamageThresholds(
         float(dn_mm),
         float(limit),
         float(moved_mm),
+        float(rotated_deg),
         float(overturn_deg),
         overturned_displaced,
         lost_displaced,
@@ -78,7 +85,7 @@ def classify(unit: UnitMotion, t: DamageThresholds) -> str:
         return "lost"
     if dist >= t.displaced_mm:
         return "displaced"
-    if dist >= t.moved_mm:
+    if dist >= t.moved_mm or (unit.rotation_deg is not None and unit.rotation_deg >= t.rotated_deg):
         return "moved"
     return "still"
 

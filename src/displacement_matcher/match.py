@@ -166,11 +166,17 @@ def _candidates(a: _PoseSet, b: _PoseSet, params: MatchParams) -> tuple[NDArray,
         dst = np.fromiter((k for h in hits for k in h), dtype=np.intp, count=int(lens.sum()))
         i, j = (dst, src) if flip else (src, dst)
         keys.append(i.astype(np.int64) * len(b) + j)
-    uniq = np.unique(np.concatenate(keys))
+    # The fixed-radius search returns each pair once; only the extra searches can repeat pairs.
+    uniq = keys[0] if len(keys) == 1 else np.unique(np.concatenate(keys))
     i, j = (uniq // len(b)).astype(np.intp), (uniq % len(b)).astype(np.intp)
-    # Exact per-pair bound before the 3x3 solves: |d|^2 <= g^2 (s^2 + l_a + l_b) / s^2.
+    # Exact per-pair bound before the 3x3 solves: |d|^2 <= g'^2 (s^2 + l_a + l_b) / s^2, where
+    # a cross-code pair must fit its weighted distance under g' = gate - code penalty.
     d2 = np.einsum("ki,ki->k", a.pos[i] - b.pos[j], a.pos[i] - b.pos[j])
-    ok = d2 * s * s <= g * g * (s * s + a.lam_max[i] + b.lam_max[j]) * (1.0 + 1e-9)
+    cross = a.code[i] != b.code[j]
+    g_eff = np.where(cross, max(g - params.code_penalty_mm, 0.0), g) if len(i) else np.zeros(0)
+    ok = d2 * s * s <= g_eff * g_eff * (s * s + a.lam_max[i] + b.lam_max[j]) * (1.0 + 1e-9)
+    if math.isinf(params.code_penalty_mm) or params.code_penalty_mm >= g:
+        ok &= ~cross
     return i[ok], j[ok]
 
 
@@ -182,9 +188,19 @@ def _pair_costs(
         return np.zeros(0)
     s2 = params.motion_scale_mm**2
     d = b.pos[j] - a.pos[i]
-    S = a.cov[i] + b.cov[j] + s2 * np.eye(3)
-    w = np.linalg.solve(S, d[..., None])[..., 0]
-    cost = np.sqrt(np.clip(s2 * np.einsum("ki,ki->k", d, w), 0.0, None))
+    S = a.cov[i] + b.cov[j]
+    # d^T S^-1 d for the symmetric positive-definite S = s^2 I + C_a + C_b, in closed form
+    # (adjugate over determinant): much faster than batched LAPACK solves on 3x3 blocks.
+    sa, sb, sc = S[:, 0, 0] + s2, S[:, 0, 1], S[:, 0, 2]
+    sd, se, sf = S[:, 1, 1] + s2, S[:, 1, 2], S[:, 2, 2] + s2
+    c00, c01, c02 = sd * sf - se * se, sc * se - sb * sf, sb * se - sc * sd
+    c11, c12, c22 = sa * sf - sc * sc, sb * sc - sa * se, sa * sd - sb * sb
+    det = sa * c00 + sb * c01 + sc * c02
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    quad = (
+        c00 * x * x + c11 * y * y + c22 * z * z + 2.0 * (c01 * x * y + c02 * x * z + c12 * y * z)
+    ) / det
+    cost = np.sqrt(np.clip(s2 * quad, 0.0, None))
     cost += np.where(a.code[i] != b.code[j], params.code_penalty_mm, 0.0)
     if params.normal_weight_mm > 0:
         dot = np.einsum("ki,ki->k", a.normal[i], b.normal[j])

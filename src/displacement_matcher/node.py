@@ -256,9 +256,18 @@ class DisplacementMatcherNode(Node):
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         qos = stream_qos(cfg.qos, cfg.queue_depth)
         self.create_subscription(PointCloud2, cfg.poses_topic, self._on_poses, qos)
+        # Hall state is latched: a (re)started matcher is told the current state. Events older
+        # than this process are history already covered by the resumed session, except the
+        # latest state (a run may be in progress): see _apply_history.
+        self._start_ns = self.get_clock().now().nanoseconds
+        self._historic: dict[str, Any] = {}
+        self._historic_timer: Any = None
         self.create_subscription(Bool, cfg.run_active_topic, self._on_run_active, event_qos())
         self.create_subscription(String, cfg.run_id_topic, self._on_run_id, event_qos())
-        self.create_subscription(Empty, cfg.capture_baseline_topic, self._on_capture, event_qos())
+        # A command is not state: volatile, so a restart never re-captures the baseline.
+        self.create_subscription(
+            Empty, cfg.capture_baseline_topic, self._on_capture, stream_qos("reliable", 10)
+        )
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
         self.last_error = ""
         s = self.session
@@ -286,11 +295,44 @@ class DisplacementMatcherNode(Node):
             self._frame_id = msg.header.frame_id
         self._handle(self.session.add_frame(poses, stamp_seconds(msg.header.stamp)))
 
-    def _on_run_active(self, msg: Bool) -> None:
-        now = self.get_clock().now().nanoseconds * 1e-9
-        self._handle(self.session.set_run_active(bool(msg.data), now))
+    def _is_history(self, info: Any, key: str, value: Any) -> bool:
+        """Keep the latest pre-start hall message instead of replaying the whole history."""
+        source_ns = int(info["source_timestamp"])
+        if source_ns >= self._start_ns:
+            return False
+        self._historic[key] = (value, source_ns)
+        if self._historic_timer is None:
+            self._historic_timer = self.create_timer(0.5, self._apply_history)
+        return True
 
-    def _on_run_id(self, msg: String) -> None:
+    def _apply_history(self) -> None:
+        if self._historic_timer is not None:
+            self._historic_timer.cancel()
+            self.destroy_timer(self._historic_timer)
+            self._historic_timer = None
+        events: list[Event] = []
+        if "run_id" in self._historic:
+            events += self.session.set_run_id(self._historic["run_id"][0])
+        if "active" in self._historic:
+            active, source_ns = self._historic["active"]
+            if active:  # a run is in progress: the coming stop must be measured
+                events += self.session.set_run_active(True, source_ns * 1e-9)
+        self._historic.clear()
+        if events:
+            self._handle(events)
+
+    def _on_run_active(self, msg: Bool, info: Any) -> None:
+        if self._is_history(info, "active", bool(msg.data)):
+            return
+        self._apply_history()  # history first: it happened before this live event
+        # The hall's own publication time orders the event against the frames' stamps.
+        stamp = int(info["source_timestamp"]) * 1e-9
+        self._handle(self.session.set_run_active(bool(msg.data), stamp))
+
+    def _on_run_id(self, msg: String, info: Any) -> None:
+        if self._is_history(info, "run_id", msg.data):
+            return
+        self._apply_history()
         self._handle(self.session.set_run_id(msg.data))
 
     def _on_capture(self, _msg: Empty) -> None:
@@ -325,7 +367,7 @@ class DisplacementMatcherNode(Node):
                 log.info(f"run {ev.run.run_id} measured: {text}")
                 try:
                     self._publish_run(ev.run)
-                except Exception as err:  # noqa: BLE001 - the report is on disk; stay up
+                except Exception as err:  # the report is on disk; stay up
                     self.last_error = f"run {ev.run.run_id}: publishing failed: {err}"
                     log.error(self.last_error)
         if changed:

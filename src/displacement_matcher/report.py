@@ -134,6 +134,7 @@ def report_dict(
                     "displaced_mm": t.displaced_mm,
                     "displaced_dn": t.displaced_mm / t.dn_mm,
                     "moved_mm": t.moved_mm,
+                    "rotated_deg": t.rotated_deg,
                     "overturn_deg": t.overturn_deg,
                     "overturned_count_as_displaced": t.overturned_displaced,
                     "lost_count_as_displaced": t.lost_displaced,

@@ -348,6 +348,8 @@ class Session:
         if self._run_active:
             # Announced just before the start but delivered after it (separate topics).
             self._current_run_id = run_id
+        elif self.runs and self.runs[-1].run_id == run_id and self.phase != Phase.SETTLING:
+            return [Notice("info", f"run id {run_id} already measured; ignored")]
         else:
             self._pending_run_id = run_id
         return []

@@ -240,6 +240,9 @@ class DamageThresholds:
         A unit whose reference point moved at least this far is displaced.
     moved_mm : float
         A unit that moved at least this far (but less than ``displaced_mm``) moved-not-displaced.
+    rotated_deg : float
+        A unit that turned at least this much (but less than ``overturn_deg``) and was not
+        displaced counts as moved too (rocking, rotation in place).
     overturn_deg : float
         Rotation at or above which a unit counts as overturned.
     overturned_displaced : bool
@@ -251,6 +254,7 @@ class DamageThresholds:
     dn_mm: float
     displaced_mm: float
     moved_mm: float
+    rotated_deg: float
     overturn_deg: float
     overturned_displaced: bool
     lost_displaced: bool
@@ -301,5 +305,6 @@ class DamageSummary:
             f"overturned {self.overturned_units}, lost {self.lost_units}, N_od {nod}; "
             f"thresholds: displaced >= {t.displaced_mm:.2f} mm "
             f"({t.displaced_mm / t.dn_mm:.2f} Dn, Dn = {t.dn_mm:.2f} mm), "
-            f"moved >= {t.moved_mm:.2f} mm, overturned >= {t.overturn_deg:.0f} deg"
+            f"moved >= {t.moved_mm:.2f} mm or >= {t.rotated_deg:.0f} deg, "
+            f"overturned >= {t.overturn_deg:.0f} deg"
         )

@@ -1,18 +1,23 @@
 """The detector: image -> fiducials (paper section 3, steps 1-4).
 
-Pipeline, designed so that only cheap vectorised work touches every pixel or every component:
+Pipeline, designed so that only cheap vectorised work touches every pixel or every boundary:
 
-1. Bradley & Roth adaptive threshold of an 8-bit copy (:mod:`.threshold`), full resolution.
-2. Connected components with statistics (:mod:`.components`); size limits, fill ratio and a
-   hole / no-hole test at the centroid pick the components that can be a pose circle: the ``ring``
-   design's black annulus, the ``dot`` design's central dot. Coarse ellipses come from component
-   geometry (boundary polygon moments for an annulus, area and bounding box for a dot).
-3. The coding track of every candidate is read at once (:mod:`.code_reader`): clutter, code
-   sectors and other designs' parts are rejected here, before any expensive step.
+1. Bradley & Roth adaptive threshold of an 8-bit copy, plus a thin-dark-line test
+   (:mod:`.threshold`), full resolution.
+2. Outer boundaries of the black components (:mod:`.components`) with step 2's length limits,
+   each summarised by its moment ellipse (a broken thin ring by its convex hull's). Conservative
+   tests on size, ellipticity and eccentricity (vectorised) keep the boundaries that can be a
+   design's pose circle: the ``ring`` design's outer annulus edge, the ``dot`` design's dot.
+3. The coding track of every candidate is read at once through its coarse ellipse
+   (:mod:`.code_reader`, step 4): clutter, code sectors and the other design's parts are rejected
+   here, before any expensive step. Candidates that look like fiducials but read poorly get their
+   pose circle fitted and are read again.
 4. Only decoded candidates get sub-pixel ellipses for every printed circle of their design
-   (Ouellet & Hébert dual conic from gradients, :mod:`.ellipse`), seeded by the coarse ellipse,
-   and the track is read again through the fitted ellipses and their centre drift; the two reads
-   must agree.
+   (Ouellet & Hébert dual conic from gradients, :mod:`.ellipse`, step 3), seeded by the coarse
+   ellipse scaled to each circle; the track is read again through the fitted ellipses and the
+   centre drift they give, and two accepted reads must agree.
+5. A detection centred inside a bigger one (a ``ring`` fiducial's dot and track read as a ``dot``
+   fiducial) is dropped.
 
 Pixel convention: ``(u, v)`` = (x, y) = (column, row), pixel centres at integer coordinates.
 """
@@ -135,6 +140,9 @@ def detect(
 def to_grey(image: NDArray[np.generic]) -> tuple[NDArray[np.generic], float]:
     """Validate an image and convert it to one channel; returns it with its full-scale value.
 
+    The full-scale value is 255 for uint8, 1.0 for floats and ``2**k - 1`` for uint16 with ``k``
+    the apparent bit depth (the bit length of the image's maximum, at least 8).
+
     Raises
     ------
     DetectorError
@@ -154,7 +162,10 @@ def to_grey(image: NDArray[np.generic]) -> tuple[NDArray[np.generic], float]:
     if image.dtype == np.uint8:
         full = 255.0
     elif image.dtype == np.uint16:
-        full = 65535.0
+        # Full scale of the data's apparent bit depth: a 12-bit camera's frames in 16-bit
+        # containers have full scale 4095, not 65535 (contrast is a fraction of it).
+        bits = max(8, int(image.max()).bit_length())
+        full = float((1 << bits) - 1)
     elif image.dtype in (np.float32, np.float64):
         full = 1.0
         if not np.all(np.isfinite(image)):

@@ -33,7 +33,7 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
@@ -49,6 +49,7 @@ from armourcam.graph import (
 )
 
 from .design import DESIGNS
+from .detect import DesignChoice
 
 PARAMS = (
     Param("image_topic", "/camera/image_raw", "Camera image topic (raw images)."),
@@ -73,9 +74,9 @@ PARAMS = (
     Param("queue_depth", 10, "KEEP_LAST depth of input and output queues.", minimum=1),
     Param(
         "design",
-        "",
-        "Fiducial design to look for (empty: the detector's default).",
-        choices=("", *sorted(DESIGNS)),
+        "any",
+        "Fiducial design to look for (any: both designs).",
+        choices=("any", *sorted(DESIGNS)),
     ),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics, s.", minimum=0.1),
 )
@@ -133,8 +134,7 @@ class FiducialDetectorNode(Node):
         t0 = time.perf_counter()
         try:
             image = image_codec.decode(msg)
-            kwargs: dict[str, Any] = {"design": self.config.design} if self.config.design else {}
-            dets = self._detect(image, **kwargs)
+            dets = self._detect(image, design=cast(DesignChoice, self.config.design))
         except Exception as err:
             # image_codec's and the detector's input errors are ValueErrors; anything else is a
             # bug worth its type name in the log, but still not worth the rig's monitoring.

@@ -126,15 +126,17 @@ def circle_params(center: ArrayLike, normal: ArrayLike, radius: ArrayLike) -> F6
     c0, c1, c2 = c[..., 0], c[..., 1], c[..., 2]
     n0, n1, n2 = n[..., 0], n[..., 1], n[..., 2]
     g = c0 * n0 + c1 * n1 + c2 * n2
-    h = c0 * c0 + c1 * c1 + c2 * c2 - r * r
+    cc = c0 * c0 + c1 * c1 + c2 * c2
     g2 = g * g
+    r2 = r * r
+    # Entry (i, j) = P_ij - r^2 n_i n_j with P computed once per centre (radius-free part).
     return params_from_entries(
-        g2 - 2.0 * g * c0 * n0 + h * n0 * n0,
-        -g * (c0 * n1 + n0 * c1) + h * n0 * n1,
-        g2 - 2.0 * g * c1 * n1 + h * n1 * n1,
-        -g * (c0 * n2 + n0 * c2) + h * n0 * n2,
-        -g * (c1 * n2 + n1 * c2) + h * n1 * n2,
-        g2 - 2.0 * g * c2 * n2 + h * n2 * n2,
+        (g2 - 2.0 * g * c0 * n0 + cc * n0 * n0) - r2 * (n0 * n0),
+        (-g * (c0 * n1 + n0 * c1) + cc * n0 * n1) - r2 * (n0 * n1),
+        (g2 - 2.0 * g * c1 * n1 + cc * n1 * n1) - r2 * (n1 * n1),
+        (-g * (c0 * n2 + n0 * c2) + cc * n0 * n2) - r2 * (n0 * n2),
+        (-g * (c1 * n2 + n1 * c2) + cc * n1 * n2) - r2 * (n1 * n2),
+        (g2 - 2.0 * g * c2 * n2 + cc * n2 * n2) - r2 * (n2 * n2),
     )
 
 

@@ -8,16 +8,20 @@ the TRIP method). Here every fitted concentric circle of the design contributes:
    the ideal-camera image of that circle. Its covariance is carried through the local affine part of
    the undistortion.
 2. **Closed form, both solutions.** The pose circle's cone gives the two candidate poses
-   (:func:`pose_estimator.conic_pose.circle_pose`).
-3. **Joint refinement over all circles.** From each candidate, Gauss-Newton adjusts the centre
-   (3-D) and normal (2 angles) to minimise the Mahalanobis distance between the predicted images of
-   *all* printed circles and the fitted ellipses, weighted by each fit's covariance. Because the
-   model predicts whole conics, the image of the true centre (which is not the ellipse centre under
-   perspective) is used implicitly: no eccentricity bias. The concentric circles make the false
-   candidate inconsistent (its pole of the vanishing line differs between circles), which resolves
-   the two-fold ambiguity; the circles' size information is combined for depth.
-4. **Honest covariance.** The position covariance is the inverse Fisher information
-   ``(J^T W J)^-1`` of that fit. When the two candidates fit (almost) equally well - a design with a
+   (:func:`pose_estimator.conic_pose.circle_pose`), each fitting the pose circle exactly.
+3. **Ambiguity from the concentric circles.** Each candidate predicts the images of the other
+   printed circles; the chi-square of the fitted ellipses against those predictions (weighted by
+   the fits' covariances) gives the candidates' likelihood weights. The false candidate's
+   concentric circles are inconsistent (its pole of the vanishing line differs between circles).
+4. **Joint refinement over all circles.** Gauss-Newton adjusts the better candidate's centre (3-D)
+   and normal (2 angles) to all circles at once. Because the model predicts whole conics, the image
+   of the true centre (not the ellipse centre, under perspective) is used implicitly: no
+   eccentricity bias. Depth comes from the pose circle, the largest: the inner circles' radii are
+   nuisance parameters and their fits carry a systematic floor (:data:`INNER_FLOOR_PX`), so that
+   their edge biases (coding track nearby, toner spread) cannot pull z while they still fix the
+   centre's image and the normal.
+5. **Honest covariance.** The position covariance is the estimator's own (sandwich) covariance
+   under the fits' covariances. When the two candidates fit (almost) equally well - a design with a
    single circle, or a nearly fronto-parallel view - the result is their likelihood-weighted
    mixture, whose covariance includes the spread between them.
 
@@ -329,7 +333,8 @@ def _sanitise_covariance(cov: F64, present: NDArray[np.bool_]) -> F64:
     nominal = np.eye(5) * DEFAULT_SIGMA_PX**2
     diag = np.diagonal(out, axis1=-2, axis2=-1)
     good = np.all(np.isfinite(out), axis=(-2, -1)) & np.all(diag > 0, axis=-1) & present
-    out = np.where(good[..., None, None], out, nominal)
+    if not np.all(good):
+        out = np.where(good[..., None, None], out, nominal)
     # A tiny floor keeps the inverse well conditioned without changing honest covariances.
     return out + np.eye(5) * (1e-9 * np.sum(diag, axis=-1, where=good[..., None]))[..., None, None]
 
@@ -339,6 +344,8 @@ def _information(cov: F64) -> F64:
     W = _inv(cov)
     diag = np.diagonal(W, axis1=-2, axis2=-1)
     good = np.all(np.isfinite(W), axis=(-2, -1)) & np.all(diag > 0, axis=-1)
+    if np.all(good):
+        return W
     out: F64 = np.where(good[..., None, None], W, np.eye(5) / DEFAULT_SIGMA_PX**2)
     return out
 
@@ -475,6 +482,7 @@ def _gauss_newton(
     extra = kc - 1 if free_scale else 0
     npar = 5 + extra
     cov = np.zeros((*c.shape[:-1], 3, 3))
+    chi2 = np.zeros(c.shape[:-1])
     Wl = W * lam[..., None, None]
     for _ in range(iterations):
         e1, e2 = _basis(n)
@@ -509,6 +517,7 @@ def _gauss_newton(
         terms = JtW @ J  # (N, K, P, P), lam_k J^T W J
         info = np.sum(terms, axis=-3)
         grad = np.sum(JtW @ res[..., None], axis=-3)
+        chi2_lin = _quadratic(res, Wl)
         # A tiny damping only guards against singular steps (e.g. a missing inner circle).
         damp = (1e-12 * np.trace(info, axis1=-2, axis2=-1) + 1e-300)[..., None, None] * np.eye(npar)
         inv_info = _inv(info + damp)
@@ -517,14 +526,13 @@ def _gauss_newton(
         B = np.sum(terms * lam[..., None, None], axis=-3)
         cov = inv_info[..., :3, :] @ B @ inv_info[..., :, :3]
         delta = np.where(np.isfinite(delta), delta, 0.0)
+        chi2 = np.maximum(chi2_lin - np.sum(grad[..., 0] * delta, axis=-1), 0.0)
         c = c + delta[..., :3]
         n = n + delta[..., 3:4] * e1 + delta[..., 4:5] * e2
         n /= np.sqrt(np.sum(n * n, axis=-1))[..., None]
         if extra:
             rad[..., 1:] *= 1.0 + delta[..., 5:]
-    # The information of the last linearisation serves the final point: the step from it is far
-    # below the scale on which the Jacobian changes.
-    res = obs - circle_params(c[..., None, :], n[..., None, :], rad)
-    res = np.where(np.isfinite(res), res, 0.0)
-    chi2 = _quadratic(res, Wl)
+    # The covariance of the last linearisation serves the final point, and its chi-square is the
+    # linearised one (res^T W res - grad^T delta): the step is far below the scale on which the
+    # Jacobian changes.
     return c, n, cov, chi2

@@ -48,6 +48,7 @@ def test_counts_and_n_od() -> None:
         unit("f", 3.0, overturned=True),
         unit("g", None),
         unit("h", 4.0, rot=120.0),
+        unit("i", 0.5, rot=12.0),
     ]
     classified, s = assess(units, t, section_width_mm=400.0)
     assert [u.status for u in classified] == [
@@ -59,16 +60,17 @@ def test_counts_and_n_od() -> None:
         "overturned",
         "lost",
         "overturned",
+        "moved",
     ]
-    assert s.n_units == 8
+    assert s.n_units == 9
     assert s.displaced_units == 4  # d, e and the two overturned; lost counted apart
-    assert s.moved_units == 2 and s.still_units == 1 and s.lost_units == 1
+    assert s.moved_units == 3 and s.still_units == 1 and s.lost_units == 1
     assert s.overturned_units == 2
-    assert s.percent_displaced == pytest.approx(50.0)
+    assert s.percent_displaced == pytest.approx(400.0 / 9)
     assert s.n_od == pytest.approx(4 * 20.0 / 400.0)
     assert set(s.displaced_ids) == {"d", "e", "f", "h"}
     text = s.describe()
-    assert "20.00 mm (1.00 Dn, Dn = 20.00 mm)" in text and "moved >= 2.00 mm" in text
+    assert "20.00 mm (1.00 Dn, Dn = 20.00 mm)" in text and "moved >= 2.00 mm or >= 10 deg" in text
 
 
 def test_thresholds_in_dn_and_mm() -> None:
@@ -90,6 +92,7 @@ def test_thresholds_in_dn_and_mm() -> None:
         ({"dn_mm": 20.0, "displaced_dn": -1.0}, "must be positive"),
         ({"dn_mm": 20.0, "moved_mm": 30.0}, "movement threshold"),
         ({"dn_mm": 20.0, "overturn_deg": 0.0}, "overturn angle"),
+        ({"dn_mm": 20.0, "rotated_deg": 100.0}, "rotation threshold"),
     ],
 )
 def test_bad_thresholds(kwargs: dict, message: str) -> None:

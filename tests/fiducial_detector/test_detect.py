@@ -234,3 +234,12 @@ def test_bad_parameters_raise() -> None:
         detect(image, max_hamming=2)
     with pytest.raises(DetectorError, match="must be a numpy array"):
         detect([[0, 1], [1, 0]])  # type: ignore[arg-type]
+
+
+def test_twelve_bit_data_in_sixteen_bit_container() -> None:
+    """Contrast is measured against the data's apparent bit depth, not the container's."""
+    scene = _one("dot", 60, 30, 8, blur=0.5, noise=0.01)
+    twelve = scene.image.astype(np.uint16) * 16  # 12-bit values
+    (det,) = detect(twelve)
+    assert det.code == scene.truth[0].code
+    assert 0.6 < det.contrast < 0.8

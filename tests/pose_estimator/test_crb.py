@@ -14,7 +14,9 @@ def _bound(size_px: float, slant_deg: float) -> tuple[float, float]:
     w = int(size_px * 1.3) + 16
     cam = CameraModel.ideal(w, w, 6507.0)
     rot = rotation_from_slant_tilt(np.radians(slant_deg))
-    b = depth_bound(cam, Target(5, "ring", 7.1, rot, np.array([0.0, 0.0, z])), blur_sigma=0.5, supersample=8)
+    b = depth_bound(
+        cam, Target(5, "ring", 7.1, rot, np.array([0.0, 0.0, z])), blur_sigma=0.5, supersample=8
+    )
     return b.z_only, b.pose
 
 

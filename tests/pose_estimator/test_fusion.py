@@ -31,7 +31,7 @@ def test_fusion_averages_frames_with_honest_covariance() -> None:
     """Fusing 16 frames shrinks the error by about 4 and the covariance stays consistent."""
     rng = np.random.default_rng(5)
     m2 = []
-    for _ in range(10):
+    for _ in range(6):
         fused = fuse(_frames(16, rng))
         # Two targets share code 4: they are told apart by position.
         assert len(fused) == 3
@@ -42,7 +42,7 @@ def test_fusion_averages_frames_with_honest_covariance() -> None:
             assert pose.n_frames >= 15  # the 99.9 % gate may drop one good frame
             assert abs(np.linalg.norm(pose.normal) - 1.0) < 1e-12
     # Mean squared Mahalanobis distance of a consistent 3-D estimate is 3.
-    assert 2.0 < np.mean(m2) < 4.2
+    assert 1.8 < np.mean(m2) < 4.5
 
 
 def test_fusion_rejects_an_outlier_frame() -> None:

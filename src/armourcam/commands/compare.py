@@ -41,6 +41,9 @@ def register(subparsers: Any) -> None:
     g.add_argument("--displaced-dn", type=float, help="displacement threshold in Dn (default 1)")
     g.add_argument("--displaced-mm", type=float, help="displacement threshold in mm")
     p.add_argument("--moved-mm", type=float, default=2.0, help="movement threshold, mm (2)")
+    p.add_argument("--rotated-deg", type=float, default=10.0, help="rotation counted as moved (10)")
+    p.add_argument("--overturn-deg", type=float, default=90.0, help="overturned from (90 deg)")
+    p.add_argument("--lost-displaced", action="store_true", help="count lost units as displaced")
     p.add_argument("--section-width-mm", type=float, help="section width along the crest (N_od)")
     p.add_argument("--gate-mm", type=float, default=None, help="matching gate, mm")
     p.add_argument("--code-penalty-mm", type=float, default=None, help="cross-code penalty, mm")
@@ -74,6 +77,9 @@ def run(args: argparse.Namespace) -> int:
         displaced_mm=args.displaced_mm,
         displaced_dn=args.displaced_dn,
         moved_mm=args.moved_mm,
+        rotated_deg=args.rotated_deg,
+        overturn_deg=args.overturn_deg,
+        lost_displaced=args.lost_displaced,
     )
     before_imgs = [_read(p) for p in args.before]
     after_imgs = [_read(p) for p in args.after]

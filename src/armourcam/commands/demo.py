@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import sys
 import time
@@ -75,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
     from armourcam import bagio, graph, sessionbag
     from armourcam.commands.replay import default_remaps
 
+    # The demo's graph talks to itself only (children inherit the environment).
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     out: Path = args.out
     bag: Path = args.bag
     if not bag.exists():
@@ -192,6 +195,16 @@ def _figures(run_dir: Path, doc: dict[str, Any], camera: Any, after: Any) -> Non
             cv2.LINE_AA,
             tipLength=0.25,
         )
+    cv2.putText(
+        img,
+        "displacement vectors x3: green same-code, red cross-code",
+        (12, 28),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.8,
+        (255, 255, 255),
+        2,
+        cv2.LINE_AA,
+    )
     ok, buf = cv2.imencode(".png", img)
     if ok:
         rep.write_atomic(run_dir / "overlay.png", buf.tobytes())
