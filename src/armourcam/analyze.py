@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from displacement_matcher.markers import displacement_records
+from displacement_matcher.markers import Comparer, displacement_records
 from displacement_matcher.session import (
     BaselineCaptured,
     Event,
@@ -86,6 +86,7 @@ def analyze_bag(
     diameter_mm: float = 7.1,
     calibration: CameraModel | None = None,
     session_config: SessionConfig | None = None,
+    comparer: Comparer | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> AnalysisResult:
     """Analyse a bag; write the reports and the markers bag into ``out_dir``.
@@ -105,7 +106,7 @@ def analyze_bag(
     markers_path = out_dir / "markers"
     if markers_path.exists():
         raise AnalyzeError(f"{markers_path} exists; choose an empty output directory")
-    session = Session(session_config or SessionConfig())
+    session = Session(session_config or SessionConfig(), compare=comparer or Comparer())
     result = AnalysisResult()
     with bagio.open_bag(bag_path) as bag:
         img_topic = bag.image_topic(image_topic)

@@ -234,6 +234,9 @@ def run_one_process(
     except GraphError as err:
         print(f"error: {err}", file=sys.stderr)
         status = 2
+    except RCLError:
+        if rclpy.ok():
+            raise
     finally:
         executor.shutdown()
         for n in nodes:
@@ -340,25 +343,24 @@ class ReplayStats:
 
 
 class Replayer:
-    """Publish a bag's messages into the graph.
+    """Publishers for a replay and the bookkeeping of ``--as-fast-as-consumed``.
 
     Parameters
     ----------
-    bag : Path
-        ROS 2 bag (MCAP or SQLite directory, or a single ``.mcap``) or ROS 1 ``.bag``.
-    topics : mapping of bag topic -> published topic
-        Which topics to publish, renamed (remapped) as given.
+    node : Node
+        The replay's node.
     qos : {"reliable", "sensor_data"}
-        QoS of the per-frame streams; hall topics are always reliable and latched.
-    rate : float or None
-        Playback speed relative to the recorded time (None with ``confirm_topic``: as fast
-        as consumed).
+        QoS of the per-frame streams (images, camera info); hall topics (``std_msgs``) are
+        always reliable and transient-local.
+    depth : int
+        KEEP_LAST depth of the per-frame publishers.
     confirm_topic : str or None
-        As-fast-as-consumed: after each image, wait until a message whose header stamp equals
-        the image's arrives on this topic (the detector's output).
-    restamp : bool
-        Set each message's header stamp to its publication time (so that frames and hall
-        events are ordered on one clock); per-frame stamps stay unique.
+        As-fast-as-consumed: the detector's output; :meth:`wait_confirmed` waits for the
+        message whose header stamp equals a frame's.
+    downstream_topic : str or None
+        The pose estimator's output (see :meth:`wait_downstream`).
+    confirm_timeout : float
+        Seconds to wait for each confirmation.
     """
 
     def __init__(
@@ -523,13 +525,26 @@ def replay_bag(
     frames = confirmed = 0
     t_start = time.monotonic()
     try:
-        items = list(_plan(messages() if messages is not None else _bag_messages(bag), remap))
-        total = len(items)
+        # Messages are streamed from the bag (a 6 MP session does not fit in memory); the
+        # topics come from its metadata.
+        if messages is not None:
+            listed = list(_plan(messages(), remap))
+            topics = {t: mt for t, mt, _, _ in listed}
+            total = len(listed)
+            items: Iterator[tuple[str, str, int, Any]] = iter(listed)
+        else:
+            with bagio.open_bag(bag) as b:
+                if b.message_count == 0:
+                    raise GraphError(f"{bag}: the bag holds no messages")
+                infos = [i for i in b.topics.values() if remap.get(i.topic, i.topic)]
+            topics = {remap.get(i.topic, i.topic): i.msgtype for i in infos}
+            total = sum(i.count for i in infos)
+            items = _plan(_bag_messages(bag), remap)
         # Create every publisher first and wait for the graph to match them, so that the first
         # frames are not published into the void.
-        for topic, msgtype, _, _ in items:
+        for topic, msgtype in topics.items():
             replayer.publisher(topic, msgtype)
-        waited = [t for t, mt, _, _ in items if not mt.startswith("std_msgs/")]
+        waited = [t for t, mt in topics.items() if not mt.startswith("std_msgs/")]
         missing = replayer.wait_for_subscribers(sorted(set(waited)), wait_subscribers)
         if missing:
             node.get_logger().warning(f"no subscriber yet on {missing}; publishing anyway")
@@ -591,8 +606,6 @@ def _bag_messages(bag: Path) -> Iterator[tuple[str, str, int, Any]]:
     from armourcam import bagio
 
     with bagio.open_bag(bag) as b:
-        if b.message_count == 0:
-            raise GraphError(f"{bag}: the bag holds no messages")
         for m in b.messages(on_truncation="report"):
             yield m.topic, m.msgtype, m.timestamp_ns, m.message
         if b.truncation is not None:

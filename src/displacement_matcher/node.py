@@ -15,8 +15,10 @@ Subscribed
     ``run_active_topic`` (default ``/hall/run_active``), ``std_msgs/Bool``;
     ``run_id_topic`` (default ``/hall/run_id``), ``std_msgs/String``;
     ``capture_baseline_topic`` (default ``/armourcam/capture_baseline``), ``std_msgs/Empty``.
-    Hall inputs: RELIABLE + TRANSIENT_LOCAL, depth 10 (a restarted node sees the hall's
-    latched state; volatile publishers match as well).
+    Run state and id: RELIABLE + TRANSIENT_LOCAL, depth 10 (a restarted node is told the
+    hall's latched state; of the messages published before the node started only the latest
+    state is applied, so finished runs are not measured twice; volatile publishers match as
+    well). The capture command: RELIABLE, VOLATILE (a restart never re-captures).
 Published (latched: RELIABLE + TRANSIENT_LOCAL, depth 1, so a late subscriber gets the last run)
     ``markers_topic`` (default ``/armourcam/markers``), ``visualization_msgs/MarkerArray``:
     arrows baseline -> current in **metres** (REP 103), green for same-code, red for cross-code

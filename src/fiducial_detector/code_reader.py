@@ -13,8 +13,12 @@ at ``c_true + k r^2`` (first order in the target's angular size), so two fitted 
 printed face (the camera sees the face, so the image is mirrored relative to +u right, +v down);
 then ``t`` differs from the printed polar angle by a constant: the code's unknown rotation.
 
-Every sector is the mean of 3 x 3 bilinear samples in its middle; black and white reference levels
-come from printed regions of known colour. Explicit rejection rules, in order:
+The track is sampled (bilinear) at 8 angles per sector on 3 radii; since ``t = 0`` falls anywhere
+within a sector, each of the 8 sector phases is tried and the one whose sectors lie farthest from
+the mid level is kept; a sector's value is the mean of its 4 middle angles. Black and white
+reference levels are medians over printed regions of known colour (``ring``: annulus and centre
+black, the white ring around the dot and the paper outside white; ``dot``: the dot black, the
+white ring and the paper outside white). Explicit rejection rules, in order:
 
 1. every sample inside the image;
 2. contrast (white - black level) at least ``min_contrast`` of full scale;
@@ -61,7 +65,7 @@ class ReaderConfig:
     max_hamming: int = 1
     weak_margin: float = 0.35
     max_weak_bits: int = 2
-    max_weak_bits_exact: int = 3
+    max_weak_bits_exact: int = 2
 
 
 @dataclass(frozen=True, slots=True, eq=False)

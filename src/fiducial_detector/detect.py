@@ -48,7 +48,7 @@ MIN_OUTER_DIAMETER_PX = 18.0
 MIN_ELLIPTICITY = 0.85
 #: Candidates that look like fiducials but read at most this far from a code get their pose
 #: ellipse fitted and are read again (small fiducials' coarse ellipses are poor).
-RETRY_MAX_DISTANCE = 2
+RETRY_MAX_DISTANCE = 1
 MIN_ASPECT = 0.15
 
 
@@ -389,22 +389,29 @@ def _detection(
 
 
 def _deduplicate(found: list[FiducialDetection]) -> list[FiducialDetection]:
-    """Drop detections centred inside a bigger one (a ``ring`` fiducial's central dot and track
-    read as a ``dot`` fiducial) and repeated detections of one fiducial."""
+    """Resolve detections of one object: keep the most trustworthy, drop those centred inside it.
+
+    Order of trust: the ``ring`` design first (its pose circle is the fiducial's outer edge, so a
+    ``dot`` reading inside it is its own central dot and track, or one of its code sectors), then
+    the lower Hamming distance, then the bigger fiducial.
+    """
     if len(found) < 2:
         return found
-    # Outer printed radius in pixels (major axis), biggest first.
+    # Outer printed radius in pixels (major axis).
     outer = np.array([d.pose_ellipse.semi_major / d.pose_ellipse.radius for d in found])
     centre = np.array([d.center_px for d in found])
-    order = np.argsort(-outer, kind="stable")
+    rank = sorted(
+        range(len(found)),
+        key=lambda i: (found[i].design != "ring", found[i].hamming, -outer[i]),
+    )
     dist = np.hypot(*(centre[:, None, :] - centre[None, :, :]).transpose(2, 0, 1))
     dropped = np.zeros(len(found), dtype=bool)
-    for i in order.tolist():
+    for i in rank:
         if dropped[i]:
             continue
-        # Fiducials do not overlap, so any other centre within this one's outer radius is a
-        # second reading of the same object.
-        inside = dist[i] < outer[i]
-        inside[i] = False
-        dropped |= inside & (outer <= outer[i])
+        # Fiducials do not overlap: any other centre within this one's outer radius, or whose
+        # own outer radius reaches this centre, is a second reading of the same object.
+        same = (dist[i] < outer[i]) | (dist[i] < outer)
+        same[i] = False
+        dropped |= same
     return [d for d, gone in zip(found, dropped.tolist(), strict=True) if not gone]

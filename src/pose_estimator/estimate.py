@@ -298,8 +298,19 @@ def estimate_arrays(
     best = np.where(w0 >= 0.5, 0, 1)
     idx = np.arange(n)
     # Joint refinement of the better candidate over all circles.
+    # Circles whose floored weight is below 1 % of their own fit's add nothing measurable to
+    # the refinement (they already did their job in the ambiguity test): leave them out.
+    keep = np.ones(kc, dtype=bool)
+    keep[1:] = np.any(lam[:, 1:] >= 0.01, axis=0)
     c_best, normal, cov_c, chi2 = _gauss_newton(
-        obs_n, W, lam, safe_r, centers[idx, best], normals[idx, best], iterations, free_scale
+        obs_n[:, keep],
+        W[:, keep],
+        lam[:, keep],
+        safe_r[:, keep],
+        centers[idx, best],
+        normals[idx, best],
+        iterations,
+        free_scale,
     )
     cov_best = 0.5 * (cov_c + np.swapaxes(cov_c, -1, -2))
     c = centers.copy()
@@ -522,9 +533,12 @@ def _gauss_newton(
         damp = (1e-12 * np.trace(info, axis1=-2, axis2=-1) + 1e-300)[..., None, None] * np.eye(npar)
         inv_info = _inv(info + damp)
         delta = (inv_info @ grad)[..., 0]
-        # Sandwich covariance of the position block only (what is reported).
-        B = np.sum(terms * lam[..., None, None], axis=-3)
-        cov = inv_info[..., :3, :] @ B @ inv_info[..., :, :3]
+        if np.all(lam == 1.0):
+            cov = inv_info[..., :3, :3]
+        else:
+            # Sandwich covariance of the position block only (what is reported).
+            B = np.sum(terms * lam[..., None, None], axis=-3)
+            cov = inv_info[..., :3, :] @ B @ inv_info[..., :, :3]
         delta = np.where(np.isfinite(delta), delta, 0.0)
         chi2 = np.maximum(chi2_lin - np.sum(grad[..., 0] * delta, axis=-1), 0.0)
         c = c + delta[..., :3]

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose, PoseArray
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, PointCloud2, PointField
 
@@ -142,6 +143,7 @@ class PoseEstimatorNode(Node):
         if self.camera is None:
             self.create_subscription(CameraInfo, cfg.camera_info_topic, self._on_camera_info, qos)
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
+        self.add_on_set_parameters_callback(self._check_parameters)
         self._pending: deque[PointCloud2] = deque()
         self.received = self.published = self.dropped = 0
         self.last_error = ""
@@ -151,6 +153,17 @@ class PoseEstimatorNode(Node):
             f"poses from {cfg.detections_topic} with camera from {source} -> {cfg.poses_topic}, "
             f"{cfg.pose_array_topic}"
         )
+
+    def _check_parameters(self, params: list[Any]) -> SetParametersResult:
+        """Runtime changes: ``diameter_mm`` must stay a positive finite number."""
+        for p in params:
+            if p.name == "diameter_mm":
+                value = p.value
+                if not isinstance(value, float | int) or not (0 < float(value) < 1e4):
+                    return SetParametersResult(
+                        successful=False, reason=f"diameter_mm must be > 0 mm, got {value!r}"
+                    )
+        return SetParametersResult(successful=True)
 
     def _diameter(self) -> float:
         value = self.get_parameter("diameter_mm").value

@@ -200,3 +200,18 @@ def test_end_to_end_with_lens_distortion() -> None:
         detect(scene.image, design="ring"), CameraModel(640, 480, K, "plumb_bob", np.zeros(5)), 7.1
     )
     assert np.linalg.norm(naive.position_mm - target.position_mm) > 0.5
+
+
+def test_missing_inner_circles_mixed_in_one_batch() -> None:
+    """Detections with 3, 2 and 1 fitted circles are posed together; fewer circles, less sure."""
+    from dataclasses import replace
+
+    target = _target("ring", 50.0, (10.0, 5.0, 770.0))
+    det = synthetic_detection(CAMERA, target, 0.02, np.random.default_rng(0))
+    dets = [det, replace(det, ellipses=det.ellipses[:2]), replace(det, ellipses=det.ellipses[:1])]
+    poses = estimate(dets, CAMERA, 7.1)
+    assert [len(p.detection.ellipses) for p in poses if p.detection] == [3, 2, 1]
+    for pose in poses:
+        assert np.all(np.abs(pose.position_mm - target.position_mm) < 4.0 * pose.sigma_mm)
+    # One circle cannot tell the two poses apart: its x, y uncertainty includes their spread.
+    assert poses[2].sigma_mm[0] > poses[0].sigma_mm[0]

@@ -1,39 +1,18 @@
-"""Fixtures for the DDS tests: an isolated domain, node processes that are always cleaned up.
+"""Fixtures for the DDS tests: node processes and a probe node, always cleaned up.
 
 Every process these tests start (and this one) runs with a ``ROS_DOMAIN_ID`` unique to the test
-run (derived from the pid, in 1..101) and ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``. Node
+run and ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (set by :mod:`rosutil` on import). Node
 processes run in their own process groups and are stopped (SIGINT, then SIGKILL of the whole
 group) by the fixture's finaliser, whatever the test's outcome.
 """
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import time
-import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
-
-DOMAIN_ID = 1 + os.getpid() % 101
-os.environ["ROS_DOMAIN_ID"] = str(DOMAIN_ID)
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-
-rclpy = pytest.importorskip("rclpy")
-
-# rclpy's type-support import chain pulls in lark, which imports the deprecated ``sre_parse``;
-# the suite runs with warnings as errors, so import it once here with that warning silenced.
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore", DeprecationWarning)
-    import rosidl_generator_py  # noqa: F401
-
-from armourcam import graph  # noqa: E402  (after the environment is set)
-
-REPO = Path(__file__).resolve().parents[2]
+from rosutil import Nodes, Probe
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -42,66 +21,6 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if Path(str(item.fspath)).is_relative_to(here):
             item.add_marker(pytest.mark.ros)
-
-
-def ros_env() -> dict[str, str]:
-    """Environment of every child process."""
-    env = os.environ.copy()
-    env["ROS_DOMAIN_ID"] = str(DOMAIN_ID)
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env["PYTHONUNBUFFERED"] = "1"
-    env["RCUTILS_LOGGING_BUFFERED_STREAM"] = "0"
-    return env
-
-
-class Nodes:
-    """Node processes of one test (started with :meth:`start`, stopped by the fixture)."""
-
-    def __init__(self, tmp: Path) -> None:
-        self.tmp = tmp
-        self.procs: dict[str, subprocess.Popen[bytes]] = {}
-
-    def start(
-        self,
-        node: str,
-        *ros_args: str,
-        params: dict[str, Any] | None = None,
-        label: str | None = None,
-    ) -> subprocess.Popen[bytes]:
-        """Start ``node`` (a package name) with ``-p name:=value`` parameters."""
-        label = label or node
-        args = list(ros_args)
-        for k, v in (params or {}).items():
-            val = str(v).lower() if isinstance(v, bool) else str(v)
-            args += ["-p", f"{k}:={val}"]
-        log = open(self.tmp / f"{label}.log", "wb")  # noqa: SIM115 - handed to the child
-        proc = subprocess.Popen(
-            graph.node_command(node, None, args),
-            env=ros_env(),
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-        log.close()
-        self.procs[label] = proc
-        return proc
-
-    def stop(self, label: str) -> int | None:
-        """Stop one node (SIGINT to its group, SIGKILL after 5 s); returns its exit status."""
-        proc = self.procs.pop(label)
-        graph.stop_processes([proc])
-        return proc.returncode
-
-    def log(self, label: str) -> str:
-        """Everything ``label`` printed so far."""
-        return (self.tmp / f"{label}.log").read_text(errors="replace")
-
-    def alive(self, label: str) -> bool:
-        return self.procs[label].poll() is None
-
-    def stop_all(self) -> None:
-        graph.stop_processes(self.procs.values())
-        self.procs.clear()
 
 
 @pytest.fixture()
@@ -114,34 +33,6 @@ def nodes(tmp_path: Path) -> Iterator[Nodes]:
         n.stop_all()
 
 
-class Probe:
-    """An rclpy node in the test process with its own context."""
-
-    def __init__(self) -> None:
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node(f"probe_{os.getpid()}", context=self.context)
-        from rclpy.executors import SingleThreadedExecutor
-
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-
-    def spin_until(self, done: Callable[[], object], timeout: float) -> bool:
-        """Spin until ``done()`` is truthy or ``timeout`` seconds pass; returns ``bool(done())``."""
-        deadline = time.monotonic() + timeout
-        while not done() and time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.05)
-        return bool(done())
-
-    def spin_for(self, seconds: float) -> None:
-        self.spin_until(lambda: False, seconds)
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.context.try_shutdown()
-
-
 @pytest.fixture()
 def probe() -> Iterator[Probe]:
     """A probe node, destroyed after the test."""
@@ -150,16 +41,3 @@ def probe() -> Iterator[Probe]:
         yield p
     finally:
         p.close()
-
-
-def armourcam(*args: str, timeout: float = 90.0) -> subprocess.CompletedProcess[str]:
-    """Run the ``armourcam`` command line as a separate process in the test's domain."""
-    return subprocess.run(
-        [sys.executable, "-m", "armourcam.cli", *args],
-        env=ros_env(),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        check=False,
-        start_new_session=True,
-    )

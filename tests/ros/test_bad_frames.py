@@ -6,7 +6,7 @@ from typing import Any
 
 import cv2
 import numpy as np
-from conftest import Nodes, Probe
+from rosutil import Nodes, Probe
 
 from armourcam import image_codec
 from armourcam.graph import stream_qos

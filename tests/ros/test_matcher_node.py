@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from conftest import Nodes, Probe
+from rosutil import Nodes, Probe
 
 from armourcam import records
 from armourcam.graph import event_qos, latched_qos, stream_qos

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO, Nodes, Probe, armourcam
+from rosutil import REPO, Nodes, Probe, armourcam
 
 from armourcam import sessionbag
 from armourcam.graph import latched_qos

@@ -30,6 +30,12 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--diameter-mm", type=float, default=7.1, help="printed fiducial diameter (default 7.1)"
     )
+    p.add_argument("--dn-mm", type=float, default=20.5, help="nominal unit size Dn, mm (20.5)")
+    p.add_argument(
+        "--displaced-dn", type=float, default=1.0, help="displaced from this many Dn (1.0)"
+    )
+    p.add_argument("--section-width-mm", type=float, help="section width, mm (for N_od)")
+    p.add_argument("--units", type=Path, help="unit map YAML (default: automatic grouping)")
     p.add_argument("--baseline-frames", type=int, default=5, help="frames fused into the baseline")
     p.add_argument("--settle-frames", type=int, default=3, help="settled frames after a run")
     p.add_argument(
@@ -41,7 +47,9 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     """Analyse; prints one line per run."""
     from armourcam.analyze import analyze_bag, text_progress
+    from displacement_matcher.markers import Comparer
     from displacement_matcher.session import SessionConfig
+    from displacement_matcher.units import load_unit_map
     from pose_estimator.camera import CameraModel
 
     if not args.bag.exists():
@@ -51,6 +59,12 @@ def run(args: argparse.Namespace) -> int:
         baseline_frames=args.baseline_frames,
         settle_frames=args.settle_frames,
         settle_tolerance_mm=args.settle_tolerance_mm,
+    )
+    comparer = Comparer(
+        dn_mm=args.dn_mm,
+        displaced_dn=args.displaced_dn,
+        section_width_mm=args.section_width_mm,
+        unit_map=load_unit_map(args.units) if args.units else None,
     )
     result = analyze_bag(
         args.bag,
@@ -62,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
         diameter_mm=args.diameter_mm,
         calibration=calibration,
         session_config=cfg,
+        comparer=comparer,
         progress=text_progress("analyze"),
     )
     fids = result.fiducials_per_frame

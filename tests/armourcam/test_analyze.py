@@ -1,0 +1,89 @@
+"""Offline analysis of bags (no DDS) and the session bags it is checked on."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from armourcam import bagio, sessionbag
+from armourcam.analyze import AnalyzeError, analyze_bag
+from displacement_matcher.session import SessionConfig
+
+REPO = Path(__file__).resolve().parents[2]
+BAG = REPO / "bags" / "session_small"
+FIXTURE = REPO.parent / "shared" / "fixtures" / "real_camera_aruco_ros1.bag"
+
+
+def test_session_bag_layout_and_truth(tmp_path: Path) -> None:
+    spec = sessionbag.SessionSpec(
+        width=376, height=250, n_units=4, baseline_frames=2, during_frames=1, after_frames=2
+    )
+    bag = tmp_path / "tiny"
+    truth = sessionbag.write_session_bag(bag, spec)
+    with bagio.open_bag(bag) as b:
+        counts = {t: i.count for t, i in b.topics.items()}
+        active = [m.message.data for m in b.messages(["/hall/run_active"])]
+        ids = [m.message.data for m in b.messages(["/hall/run_id"])]
+    frames = 2 + (1 + 1 + 2) + (1 + 2)  # baseline, run 1 (during, rocking, after), run 2
+    assert counts[sessionbag.COMPRESSED_TOPIC] == frames
+    assert counts[sessionbag.CAMERA_INFO_TOPIC] == frames
+    assert active == [True, False, True, False]
+    assert ids == ["wave-001", "wave-002"]
+    run1 = truth["runs"][0]["cumulative"]
+    # The truth is the field's rigid motion: still units have zero displacement.
+    for u in run1["units"]:
+        if not (u["moved"] or u["overturned"]):
+            assert np.allclose(u["translation_mm"], 0.0)
+    assert sessionbag.truth_paths(bag)[1].read_text().startswith("run_id,reference,")
+    assert truth["runs"][1]["incremental"]["displaced_units"] == 0
+
+
+@pytest.mark.skipif(not BAG.exists(), reason="bags/session_small missing (armourcam make-bags)")
+def test_analyze_session_bag_reports_every_run(tmp_path: Path) -> None:
+    truth = sessionbag.read_truth(BAG)
+    assert truth is not None
+    cfg = SessionConfig(baseline_frames=truth["spec"]["baseline_frames"], settle_frames=3)
+    result = analyze_bag(BAG, tmp_path, session_config=cfg)
+    assert result.frames == 17 and result.frames_dropped == 0
+    assert [r.run_id for r in result.runs] == ["wave-001", "wave-002"]
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert [r["run_id"] for r in doc["runs"]] == ["wave-001", "wave-002"]
+    for run, part in zip(doc["runs"], truth["runs"], strict=True):
+        assert {"fiducials", "units", "summary"} <= set(run)  # compare --json keys
+        acc = sessionbag.compare_to_truth(run, part["cumulative"])
+        assert acc["err_median_mm"] < 1.0
+        assert acc["wrong"] <= 2
+    assert doc["runs"][1]["incremental"]["summary"]["displaced_units"] == 0
+    assert len(list((tmp_path / "runs").glob("*.json"))) == 2
+    # The markers bag opens with the plain MCAP reader Foxglove uses.
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    (mcap,) = (tmp_path / "markers").glob("*.mcap")
+    seen: dict[str, int] = {}
+    with mcap.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, channel, _, msg in reader.iter_decoded_messages():
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            if channel.topic == "/armourcam/markers":
+                arrows = [k for k in msg.markers if k.type == 0 and k.action == 0]
+                assert arrows and all(0.0 < k.color.a <= 1.0 for k in arrows)
+    assert seen["/armourcam/markers"] == 2 and seen["/armourcam/poses"] == 17
+
+
+@pytest.mark.skipif(not FIXTURE.exists(), reason="real fixture missing")
+def test_analyze_real_ros1_bag_finds_no_fiducials(tmp_path: Path) -> None:
+    result = analyze_bag(FIXTURE, tmp_path, session_config=SessionConfig(baseline_frames=1))
+    assert result.frames == 1
+    assert result.fiducials_per_frame == [0]
+    assert result.runs == []
+    assert result.topics["image"] == "/raspicam_node/image/compressed"
+
+
+def test_analyze_refuses_an_existing_markers_bag(tmp_path: Path) -> None:
+    (tmp_path / "markers").mkdir()
+    with pytest.raises(AnalyzeError, match="markers"):
+        analyze_bag(FIXTURE, tmp_path)
