@@ -174,50 +174,6 @@ def axes_to_params_jacobian(a: ArrayLike, b: ArrayLike, angle: ArrayLike) -> F64
     return J
 
 
-def circle_conic(
-    K: ArrayLike, center_mm: ArrayLike, normal: ArrayLike, radius_mm: ArrayLike
-) -> F64:
-    """Ideal image conics of circles in 3-D (camera frame, mm).
-
-    Parameters
-    ----------
-    K : (3, 3) array_like
-        Camera matrix.
-    center_mm, normal : (..., 3) array_like
-        Circle centres and unit plane normals.
-    radius_mm : (...) array_like
-        Circle radii.
-
-    Returns
-    -------
-    (..., 3, 3) ndarray
-        Pixel conics ``H^-T diag(1, 1, -r^2) H^-1`` with ``H = K [e1 e2 c]``.
-    """
-    c = np.asarray(center_mm, dtype=np.float64)
-    n = np.asarray(normal, dtype=np.float64)
-    r = np.asarray(radius_mm, dtype=np.float64)
-    e1, e2 = _plane_basis(n)
-    H = np.asarray(K, dtype=np.float64) @ np.stack([e1, e2, c], axis=-1)
-    Hinv = np.linalg.inv(H)
-    D = np.zeros((*r.shape, 3, 3))
-    D[..., 0, 0] = D[..., 1, 1] = 1.0
-    D[..., 2, 2] = -r * r
-    out: F64 = np.swapaxes(Hinv, -1, -2) @ D @ Hinv
-    return out
-
-
-def _plane_basis(n: F64) -> tuple[F64, F64]:
-    """Two unit vectors spanning the plane orthogonal to each ``n`` (``(..., 3)``)."""
-    helper = np.zeros_like(n)
-    use_x = np.abs(n[..., 0]) < 0.9
-    helper[..., 0] = np.where(use_x, 1.0, 0.0)
-    helper[..., 1] = np.where(use_x, 0.0, 1.0)
-    e1 = np.cross(n, helper)
-    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
-    e2 = np.cross(n, e1)
-    return e1, e2
-
-
 def circle_pose(cone: ArrayLike, radius_mm: ArrayLike) -> tuple[F64, F64]:
     """Both poses of a circle of known radius from its cone (closed form).
 

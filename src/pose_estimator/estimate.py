@@ -33,11 +33,12 @@ camera.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from fiducial_detector.types import Ellipse, FiducialDetection
+from fiducial_detector.types import FiducialDetection
 
 from .camera import CameraModel
 from .conic_pose import (
@@ -123,6 +124,7 @@ def estimate(
     return poses
 
 
+@dataclass(frozen=True, slots=True, eq=False)
 class PoseArrays:
     """Vectorised pose results for ``N`` fiducials (camera frame, mm).
 
@@ -141,33 +143,13 @@ class PoseArrays:
         Weighted squared residual of the chosen candidate's fit.
     """
 
-    __slots__ = (
-        "ambiguity",
-        "center_px",
-        "chi2",
-        "covariance_mm2",
-        "normal",
-        "position_mm",
-        "valid",
-    )
-
-    def __init__(
-        self,
-        position_mm: F64,
-        normal: F64,
-        covariance_mm2: F64,
-        valid: NDArray[np.bool_],
-        ambiguity: F64,
-        center_px: F64,
-        chi2: F64,
-    ) -> None:
-        self.position_mm = position_mm
-        self.normal = normal
-        self.covariance_mm2 = covariance_mm2
-        self.valid = valid
-        self.ambiguity = ambiguity
-        self.center_px = center_px
-        self.chi2 = chi2
+    position_mm: F64
+    normal: F64
+    covariance_mm2: F64
+    valid: NDArray[np.bool_]
+    ambiguity: F64
+    center_px: F64
+    chi2: F64
 
 
 def detections_to_arrays(
@@ -212,15 +194,6 @@ def _cov_or_nan(cov: object) -> F64:
     """A 5x5 covariance as float64, or NaNs when it has the wrong shape."""
     c = np.asarray(cov, dtype=np.float64)
     return c if c.shape == (5, 5) else np.full((5, 5), np.nan)
-
-
-def ellipse_observation(ellipse: Ellipse) -> tuple[F64, F64]:
-    """One ellipse as ``(u, v, s11, s12, s22)`` with its 5x5 covariance in those parameters."""
-    obs = params_from_axes(
-        *ellipse.center_px, ellipse.semi_major, ellipse.semi_minor, ellipse.angle
-    )
-    J = axes_to_params_jacobian(ellipse.semi_major, ellipse.semi_minor, ellipse.angle)
-    return obs, J @ np.asarray(ellipse.covariance, dtype=np.float64) @ J.T
 
 
 def estimate_arrays(

@@ -243,3 +243,25 @@ def test_twelve_bit_data_in_sixteen_bit_container() -> None:
     (det,) = detect(twelve)
     assert det.code == scene.truth[0].code
     assert 0.6 < det.contrast < 0.8
+
+
+def _fake(
+    design: str, code: int, centre: tuple[float, float], a: float, ham: int = 0
+) -> FiducialDetection:
+    from fiducial_detector.types import Ellipse
+
+    radius = get_design(design).pose_circle.radius
+    ell = Ellipse(centre, a, 0.5 * a, 0.0, np.eye(5) * 1e-4, radius)
+    return FiducialDetection(code, ham, centre, (ell,), 0.7, design)
+
+
+def test_deduplicate_prefers_the_ring_reading() -> None:
+    """A ``dot`` reading of a ring's code sector (whose implied outer size can exceed the ring's)
+    never displaces the ring detection; separate fiducials are all kept."""
+    from fiducial_detector.detect import _deduplicate
+
+    ring = _fake("ring", 50, (47.4, 47.4), 22.5)
+    sector_as_dot = _fake("dot", 8, (50.9, 36.1), 7.8)  # outer 26 px > the ring's 22.5 px
+    far = _fake("dot", 3, (140.0, 47.0), 6.0)
+    kept = _deduplicate([sector_as_dot, ring, far])
+    assert sorted((d.design, d.code) for d in kept) == [("dot", 3), ("ring", 50)]
