@@ -373,6 +373,8 @@ def rows_to_records(name: str, rows: Iterable[Mapping[str, Any]]) -> NDArray[Any
     lay = layout(name)
     rows = list(rows)
     out = np.zeros(len(rows), dtype=lay.dtype)
+    if not rows:
+        return out
     want = set(lay.field_names)
     for i, row in enumerate(rows):
         keys = set(row)

@@ -77,12 +77,9 @@ def displacement_rows(
 
 
 def displacement_records(rows: Sequence[dict[str, Any]]) -> Any:
-    """``DisplacementRecord`` structured array of ``rows`` (an empty array for no rows:
-    ``records.rows_to_records`` cannot infer the array fields' shapes from zero rows)."""
+    """``DisplacementRecord`` structured array of ``rows`` (empty for no rows)."""
     from armourcam import records
 
-    if not rows:
-        return records.layout(records.DISPLACEMENT).empty(0)
     return records.rows_to_records(records.DISPLACEMENT, rows)
 
 

@@ -408,3 +408,12 @@ def test_covariance_packing() -> None:
     np.testing.assert_array_equal(records.upper_to_covariance(up, 5), c)
     with pytest.raises(RecordError, match="do not make a 3x3"):
         records.upper_to_covariance(up, 3)
+
+
+def test_rows_to_records_accepts_zero_rows() -> None:
+    """A frame or run with nothing to report encodes as an empty, well-typed array."""
+    from armourcam import records
+
+    out = records.rows_to_records(records.DISPLACEMENT, [])
+    assert out.shape == (0,)
+    assert out.dtype == records.layout(records.DISPLACEMENT).dtype
