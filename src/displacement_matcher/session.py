@@ -317,6 +317,7 @@ class Session:
         self._run_active = False
         self._pending_run_id: str | None = None
         self._current_run_id: str | None = None
+        self._current_run_id_auto = False
         self._capture_requested = False
         self._settle_count = 0
         self._stop_stamp: float | None = None
@@ -345,9 +346,11 @@ class Session:
         run_id = run_id.strip()
         if not run_id:
             return [Notice("warn", "empty run id ignored")]
-        if self._run_active:
-            # Announced just before the start but delivered after it (separate topics).
+        if self._run_active or (self.phase == Phase.SETTLING and self._current_run_id_auto):
+            # Announced just before the start but delivered after it, even after the stop:
+            # separate topics carry no common order. A named run keeps its name.
             self._current_run_id = run_id
+            self._current_run_id_auto = False
         elif self.runs and self.runs[-1].run_id == run_id and self.phase != Phase.SETTLING:
             return [Notice("info", f"run id {run_id} already measured; ignored")]
         else:
@@ -378,6 +381,7 @@ class Session:
                 self._baseline_due = True
             else:
                 self._window.clear()
+            self._current_run_id_auto = self._pending_run_id is None
             self._current_run_id = self._pending_run_id or f"run-{len(self.runs) + 1:03d}"
             self._pending_run_id = None
             self.phase = Phase.RUN_ACTIVE

@@ -195,6 +195,27 @@ def test_frames_stamped_before_the_stop_are_not_used(rng: np.random.Generator) -
     assert np.linalg.norm(d[7] - [0, 0, 9.0]) < 0.5
 
 
+def test_run_id_delivered_after_the_stop_names_the_run(rng: np.random.Generator) -> None:
+    """Run id and run state travel on separate topics: an id announced before the start may be
+    delivered after the stop; it still names the run being settled, and a named run keeps its
+    name."""
+    truth0 = scene()
+    s = make(baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    s.set_run_id("wave-001")  # late
+    (done,) = of_type(feed(s, [frame(truth0, rng) for _ in range(2)], 2.5), RunCompleted)
+    assert done.run.run_id == "wave-001"
+
+    s.set_run_id("wave-002")
+    s.set_run_active(True, 3.0)
+    s.set_run_active(False, 4.0)
+    s.set_run_id("wave-003")  # the next run's id, announced while this one settles
+    (done2,) = of_type(feed(s, [frame(truth0, rng) for _ in range(2)], 4.5), RunCompleted)
+    assert done2.run.run_id == "wave-002"
+
+
 def test_settle_timeout_reports_unsettled(rng: np.random.Generator) -> None:
     truth0 = scene(16)
     s = make(baseline_frames=2, settle_frames=3, settle_timeout_frames=6)
