@@ -260,7 +260,9 @@ def _finish(
         # Second chance for candidates that look like fiducials but whose code did not read:
         # small boundaries give poor coarse ellipses, so fit the pose circle and read again.
         seeds0 = [_scaled_seed(cands, i, 1.0, 0.0) for i in retry.tolist()]
-        refits = fit_ellipses(grey, seeds0, r0, noise_std=noise)
+        refits = fit_ellipses(
+            grey, seeds0, r0, noise_std=noise, dark_inside=design.pose_circle.dark_inside
+        )
         good = [
             (i, e)
             for i, e, s in zip(retry.tolist(), refits, seeds0, strict=True)
@@ -288,11 +290,14 @@ def _finish(
         return []
     seeds: list[Ellipse] = []
     radii: list[float] = []
+    polarity: list[bool | None] = []
     for i in idx.tolist():
         for circle in design.circles:
             seeds.append(_scaled_seed(cands, i, circle.radius / r0, circle.radius**2 - r0**2))
             radii.append(circle.radius)
-    fits = fit_ellipses(grey, seeds, radii, noise_std=noise)
+            polarity.append(circle.dark_inside)
+    # The design knows each edge's polarity: no vote needed, and thin annuli stay safe.
+    fits = fit_ellipses(grey, seeds, radii, noise_std=noise, dark_inside=polarity)
     m = len(design.circles)
     keep: list[int] = []
     fitted: list[tuple[Ellipse, ...]] = []
