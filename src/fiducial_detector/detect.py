@@ -216,7 +216,7 @@ def detect_grey(
     designs = (RING, DOT) if config.design == "any" else (DESIGNS[config.design],)
     for design in designs:
         cands = _candidates(bounds, design, config.min_diameter_px, max_d)
-        found += _finish(grey, full_scale, cands, config.reader)
+        found += _finish(grey, full_scale, _outside(cands, found), config.reader)
     found = _deduplicate(found)
     found.sort(key=lambda d: (d.center_px[1], d.center_px[0]))
     return found
@@ -236,6 +236,35 @@ def _candidates(
     sel = bounds.select(keep)
     n = len(sel)
     return _Candidates(design, sel.centre, sel.axes, sel.angle, np.zeros((n, 2)))
+
+
+def _outside(cands: _Candidates, found: list[FiducialDetection]) -> _Candidates:
+    """Drop candidates that :func:`_deduplicate` would drop anyway, before reading them.
+
+    ``found`` holds detections of a design ranked before ``cands``' (the ``ring`` design comes
+    first), so any detection of ``cands`` centred inside one of them is dropped there. A
+    candidate's final centre stays within two :func:`_plausible` tolerances of its coarse centre
+    (retry fit, then the final fit; ``3 * tol`` bounds both), so a candidate that far inside is
+    certain to be dropped: on a ``ring`` frame, the ``dot`` reading of every ring's own dot,
+    track and sectors costs nothing.
+    """
+    if not found or len(cands.centre) == 0:
+        return cands
+    centre = np.array([d.center_px for d in found])
+    outer = np.array([d.pose_ellipse.semi_major / d.pose_ellipse.radius for d in found])
+    margin = 3.0 * (0.25 * cands.axes[:, 1] + 1.5)
+    keep = np.ones(len(cands.centre), dtype=bool)
+    # Chunks of candidates keep the distance matrix small.
+    for lo in range(0, len(cands.centre), 1024):
+        c = cands.centre[lo : lo + 1024]
+        dist = np.hypot(c[:, None, 0] - centre[None, :, 0], c[:, None, 1] - centre[None, :, 1])
+        inside = np.any(dist + margin[lo : lo + 1024, None] < outer[None, :], axis=1)
+        keep[lo : lo + 1024] = ~inside
+    if np.all(keep):
+        return cands
+    return _Candidates(
+        cands.design, cands.centre[keep], cands.axes[keep], cands.angle[keep], cands.drift[keep]
+    )
 
 
 def _finish(

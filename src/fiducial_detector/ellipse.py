@@ -18,15 +18,22 @@ Refinements over [1] (measured in ``benchmarks/detector_precision.py``):
   bright) is the opposite of the edge's, are excluded: they belong to neighbouring edges such as
   the code sectors; so are gradients not clearly above the noise;
 - gradients are Scharr derivatives (normalised to intensity per pixel), computed only at the
-  band's pixels, and fits are batched (all normal equations summed with ``np.add.reduceat``);
+  band's pixels for a few fits, or once with ``cv2.Scharr`` over the crop holding all the bands
+  when many fits share an image (cheaper per pixel than gathering neighbourhoods in every pass);
+  fits are batched: the distinct monomials of all normal equations are summed per fit with
+  ``np.add.reduceat`` in one (15, N) array, no per-fit Python loop;
+- gradients below a tenth of the band's strongest are ignored too (the blurred edge's far
+  tails: ~17 % of the pixels, ~0.2 % of the weight);
 - a fit that drifts far from its seed (it locked onto another edge) is rejected.
 
 Uncertainty: the image noise ``sigma`` (estimated robustly from the image, or given) is propagated
 to first order through the Scharr filter and the weighted normal equations, including the
 correlation that the filter introduces between neighbouring gradients, then to the ellipse
-parameters by a numerical Jacobian. The dual-conic fit's own residuals are *not* used to scale the
-covariance: they are dominated by the deterministic spread of tangent lines across the blurred edge
-(the same in every noise realisation), and would overstate the random error several times.
+parameters by a numerical Jacobian. This stays exact on the hot path: the per-pixel sensitivities
+are computed in float32 and filtered for all fits at once on tiles packed into shared canvases.
+The dual-conic fit's own residuals are *not* used to scale the covariance: they are dominated by
+the deterministic spread of tangent lines across the blurred edge (the same in every noise
+realisation), and would overstate the random error several times.
 
 Pixel convention: ``(u, v)`` = (x, y) = (column, row), pixel centres at integer coordinates.
 
@@ -316,7 +323,7 @@ def _band_pixels(
 
 def _gradients_at(
     img: NDArray[Any], u: NDArray[np.intp], v: NDArray[np.intp]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Scharr derivatives (intensity per pixel) at pixels ``(u, v)`` (not on the border)."""
     flat = img.ravel()
     stride = img.shape[1]
@@ -351,9 +358,9 @@ class _GradientField:
 
     def at(
         self, u: NDArray[np.intp], v: NDArray[np.intp]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp] | None]:
-        """Derivatives at pixels ``(u, v)``, and the indices of pixels outside the crop (or None;
-        their derivatives are set to zero)."""
+    ) -> tuple[NDArray[Any], NDArray[Any], NDArray[np.intp] | None]:
+        """Stored derivatives (times ``scale``: intensity per pixel) at pixels ``(u, v)``, and
+        the indices of pixels outside the crop (or None; their derivatives are set to zero)."""
         cu, cv = u - self.origin[0], v - self.origin[1]
         h, w = self.gu.shape
         outside = None
@@ -361,14 +368,11 @@ class _GradientField:
             out = (cu < 0) | (cv < 0) | (cu >= w) | (cv >= h)
             outside = np.flatnonzero(out)
             cu, cv = np.where(out, 0, cu), np.where(out, 0, cv)
-        gu = self.gu[cv, cu].astype(np.float64)
-        gv = self.gv[cv, cu].astype(np.float64)
-        if self.scale != 1.0:
-            gu *= self.scale
-            gv *= self.scale
+        gu = self.gu[cv, cu]
+        gv = self.gv[cv, cu]
         if outside is not None:
-            gu[outside] = 0.0
-            gv[outside] = 0.0
+            gu[outside] = 0
+            gv[outside] = 0
         return gu, gv, outside
 
 
@@ -469,8 +473,8 @@ def fit_ellipses(
     gradients : (gu, gv) of (H, W) array_like, optional
         Precomputed derivatives of ``image`` along u and v, which must be Scharr derivatives in
         intensity per pixel (``cv2.Scharr(img, cv2.CV_32F, 1, 0) / 32``) for the covariance to
-        hold. By default they are computed only at the band's pixels, which is cheaper than
-        full-frame gradients.
+        hold. By default they are computed at the band's pixels (few fits) or once over the crop
+        holding every band (many fits), whichever is cheaper.
     origin : (int, int)
         Full-image ``(u0, v0)`` of ``image[0, 0]``; results are in full-image pixels.
     noise_std : float, optional
@@ -680,6 +684,9 @@ class _FitState:
     y: NDArray[np.float64]
 
 
+# Rows of one packed canvas chunk in the covariance's filtering (about 8 MB per 5-channel buffer).
+_CHUNK_ROWS = 192
+
 # Index pairs of the 15 distinct entries of a symmetric 5x5 matrix.
 _IU = np.triu_indices(5)
 
@@ -769,38 +776,44 @@ def _fit_once(
     n = len(params)
     fit, pu, pv = _band_pixels(params, half, img.shape)
     bad = np.zeros(n, dtype=bool)
+    gscale = 1.0
+    ru: NDArray[Any]
+    rv: NDArray[Any]
     if gradients is None:
-        gu, gv = _gradients_at(img, pu, pv)
+        ru, rv = _gradients_at(img, pu, pv)
     else:
-        gu, gv, outside = gradients.at(pu, pv)
+        ru, rv, outside = gradients.at(pu, pv)
+        gscale = gradients.scale
         if outside is not None:
             # Bands that wandered off the precomputed crop: those fits moved far, not this edge.
             bad = np.bincount(fit[outside], minlength=n) > 0
-    if not np.isfinite(np.sum(gu) + np.sum(gv)):
+    if ru.dtype.kind == "f" and not np.isfinite(np.sum(ru) + np.sum(rv)):
         # NaN or inf pixels near the edge: those fits are degenerate.
-        finite = np.isfinite(gu) & np.isfinite(gv)
+        finite = np.isfinite(ru) & np.isfinite(rv)
         bad |= np.bincount(fit[~finite], minlength=n) > 0
-        gu, gv = np.where(finite, gu, 0.0), np.where(finite, gv, 0.0)
+        ru, rv = np.where(finite, ru, 0), np.where(finite, rv, 0)
     # Gradients not clearly above the noise carry no edge and point anywhere; they would also
-    # make the first-order covariance overstate the scatter. Drop them first (cheapest).
-    gmag = np.hypot(gu, gv)
-    # Also the blurred edge's far tails (below a tenth of the band's strongest gradient): with
-    # weights |g|^2 they carry ~0.2 % of the information on 17 % of the pixels (measured).
-    floor = np.zeros(n)
+    # make the first-order covariance overstate the scatter. Drop them first (cheapest: squared
+    # magnitudes in float32, before anything else is computed for the pixel). Also the blurred
+    # edge's far tails (below a tenth of the band's strongest gradient): with weights |g|^2 they
+    # carry ~0.2 % of the information on 17 % of the pixels (measured).
+    fu, fv = ru.astype(np.float32, copy=False), rv.astype(np.float32, copy=False)
+    g2 = fu * fu
+    g2 += fv * fv
+    floor2 = np.zeros(n)
     starts, counts = _segments(fit, n)
     present = counts > 0
-    if gmag.size:
-        floor[present] = _MIN_REL_GRADIENT * np.maximum.reduceat(gmag, starts[present])
-    floor = np.maximum(floor, _MIN_SNR * _SCHARR_GAIN * sigma)
-    strong = np.flatnonzero(gmag > floor[fit])
-    fit, pu, pv, gu, gv, gmag = (
-        fit[strong],
-        pu[strong],
-        pv[strong],
-        gu[strong],
-        gv[strong],
-        gmag[strong],
-    )
+    if g2.size:
+        floor2[present] = _MIN_REL_GRADIENT**2 * np.maximum.reduceat(g2, starts[present])
+    floor2 = np.maximum(floor2, (_MIN_SNR * _SCHARR_GAIN * sigma / gscale) ** 2)
+    strong = np.flatnonzero(g2 > floor2[fit])
+    fit, pu, pv = fit[strong], pu[strong], pv[strong]
+    gu = ru[strong].astype(np.float64)
+    gv = rv[strong].astype(np.float64)
+    if gscale != 1.0:
+        gu *= gscale
+        gv *= gscale
+    gmag = np.sqrt(gu * gu + gv * gv)
     # Centre and scale coordinates on the current estimate for conditioning ([1], section 3).
     u0, v0, a, b, ang = params.T
     scale = a.copy()
@@ -976,6 +989,12 @@ def _covariances(st: _FitState, sigma: float, wanted: NDArray[np.bool_]) -> NDAr
     return out
 
 
+def _records(a: NDArray[np.float32]) -> NDArray[np.void]:
+    """A contiguous float32 array of 5-vectors (last axis) as a flat array of 20-byte records:
+    fancy indexing then moves one record per index (several times faster than rows)."""
+    return a.reshape(-1, 5).view(np.dtype((np.void, 20))).reshape(-1)
+
+
 def _filtered_gram(
     st: _FitState,
     Vu: NDArray[Any],
@@ -1009,45 +1028,77 @@ def _filtered_gram(
     vmin = np.minimum.reduceat(pv, seg) - 1
     tw = np.maximum.reduceat(pu, seg) - umin + 2
     th = np.maximum.reduceat(pv, seg) - vmin + 2
-    # Shelf packing, tallest tiles first.
+    # Shelf packing, tallest tiles first; shelves grouped into chunks of about _CHUNK_ROWS rows,
+    # each filtered in the same few reused buffers (fresh canvases for all fits at once cost
+    # more in page faults than in filtering).
     width = int(max(2048, int(tw.max())))
     ox = np.zeros(idx.size, dtype=np.intp)
     oy = np.zeros(idx.size, dtype=np.intp)
+    chunk = np.zeros(idx.size, dtype=np.intp)
+    heights: list[int] = []
     x = y = shelf = 0
     for t in np.argsort(-th, kind="stable").tolist():
         w_t = int(tw[t])
         if x + w_t > width:
             x, y, shelf = 0, y + shelf, 0
-        ox[t], oy[t] = x, y
+            if y >= _CHUNK_ROWS:
+                heights.append(y)
+                y = 0
+        ox[t], oy[t], chunk[t] = x, y, len(heights)
         x += w_t
         shelf = max(shelf, int(th[t]))
-    height = y + shelf
+    heights.append(y + shelf)
     tile = np.repeat(np.arange(idx.size), counts[idx])
     flat = (oy[tile] + (pv - vmin[tile])) * width + ox[tile] + (pu - umin[tile])
-    cu = np.zeros((height, width, 5), np.float32)
-    cv = np.zeros((height, width, 5), np.float32)
-    cu.reshape(-1, 5)[flat] = Vu[order]
-    cv.reshape(-1, 5)[flat] = Vv[order]
-    G = np.asarray(cv2.filter2D(cu, -1, _FLIPPED_U, borderType=cv2.BORDER_CONSTANT), np.float32)
-    G += cv2.filter2D(cv, -1, _FLIPPED_V, borderType=cv2.BORDER_CONSTANT)
-    # Support of G: the band pixels and their 8 neighbours, all inside their own tile; tile ids
-    # (1-based, exact in float32) spread there by a 3x3 dilation, as tiles never touch.
-    marks = np.zeros((height, width), np.float32)
-    marks.reshape(-1)[flat] = tile + 1
-    ids = np.asarray(cv2.dilate(marks, np.ones((3, 3), np.uint8)), np.float32).ravel()
-    sup = np.flatnonzero(ids)
-    who = ids[sup].astype(np.uint16 if idx.size < 65535 else np.intp) - 1
-    # Group the support by tile (radix sort of small ints), then per-tile sums of the products.
-    sup = sup[np.argsort(who, kind="stable")]
-    seg_counts = np.bincount(who, minlength=idx.size)
-    Gt = np.ascontiguousarray(G.reshape(-1, 5)[sup].T)
+    # Pixels grouped by chunk (stable: still by tile within a chunk).
+    by_chunk = np.argsort(chunk[tile].astype(np.uint16), kind="stable")
+    chunk_first = np.searchsorted(chunk[tile][by_chunk], np.arange(len(heights) + 1))
+    rows = max(heights)
+    cu_buf = np.empty((rows, width, 5), np.float32)
+    cv_buf = np.empty((rows, width, 5), np.float32)
+    g_buf = np.empty((rows, width, 5), np.float32)
+    g2_buf = np.empty((rows, width, 5), np.float32)
+    marks_buf = np.empty((rows, width), np.float32)
+    ids_buf = np.empty((rows, width), np.float32)
+    kernel = np.ones((3, 3), np.uint8)
     iu, ju = _IU
-    prods = np.empty((15, sup.size), np.float32)
-    for k in range(15):
-        np.multiply(Gt[iu[k]], Gt[ju[k]], out=prods[k])
-    first = np.cumsum(seg_counts) - seg_counts
-    # float32 sums of at most a few thousand positive terms: ~1e-6 relative, ample for a variance.
-    sums = np.add.reduceat(prods, first, axis=1).T.astype(np.float64)
+    sums = np.zeros((idx.size, 15))
+    vu_rec = _records(np.ascontiguousarray(Vu, dtype=np.float32))
+    vv_rec = _records(np.ascontiguousarray(Vv, dtype=np.float32))
+    for c, h in enumerate(heights):
+        pix = by_chunk[chunk_first[c] : chunk_first[c + 1]]
+        if pix.size == 0:
+            continue
+        f = flat[pix]
+        cu, cv, G, G2 = cu_buf[:h], cv_buf[:h], g_buf[:h], g2_buf[:h]
+        marks, ids2d = marks_buf[:h], ids_buf[:h]
+        cu.fill(0.0)
+        cv.fill(0.0)
+        marks.fill(0.0)
+        src = order[pix]
+        _records(cu)[f] = vu_rec[src]
+        _records(cv)[f] = vv_rec[src]
+        cv2.filter2D(cu, -1, _FLIPPED_U, dst=G, borderType=cv2.BORDER_CONSTANT)
+        cv2.filter2D(cv, -1, _FLIPPED_V, dst=G2, borderType=cv2.BORDER_CONSTANT)
+        G += G2
+        # Support of G: the band pixels and their 8 neighbours, all inside their own tile; tile
+        # ids (1-based, exact in float32) spread there by a 3x3 dilation, as tiles never touch.
+        marks.reshape(-1)[f] = tile[pix] + 1
+        cv2.dilate(marks, kernel, dst=ids2d)
+        ids = ids2d.reshape(-1)
+        sup = np.flatnonzero(ids)
+        who = ids[sup].astype(np.uint16 if idx.size < 65535 else np.intp) - 1
+        # Group the support by tile (radix sort of small ints), then per-tile product sums.
+        sup = sup[np.argsort(who, kind="stable")]
+        seg_counts = np.bincount(who, minlength=idx.size)
+        here = np.flatnonzero(seg_counts)
+        Gt = np.ascontiguousarray(_records(G)[sup].view(np.float32).reshape(-1, 5).T)
+        prods = np.empty((15, sup.size), np.float32)
+        for k in range(15):
+            np.multiply(Gt[iu[k]], Gt[ju[k]], out=prods[k])
+        first = np.cumsum(seg_counts[here]) - seg_counts[here]
+        # float32 sums of a few thousand positive terms: ~1e-6 relative, ample for a variance.
+        sums[here] = np.add.reduceat(prods, first, axis=1).T
     Sp = np.empty((idx.size, 5, 5))
     Sp[:, iu, ju] = sums
     Sp[:, ju, iu] = sums

@@ -20,6 +20,7 @@ import numpy as np
 
 from fiducial_detector import DetectorError, detect
 from fiducial_detector.types import Ellipse, FiducialDetection
+from pose_estimator import CalibrationError, CameraModel, estimate
 
 from ..imageio import ImageReadError, read_image
 
@@ -43,7 +44,41 @@ def register(subparsers: Any) -> None:
         help="fiducial design to look for (default: any, both designs in one image)",
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument(
+        "--camera",
+        metavar="CAMERA.yaml",
+        type=_camera,
+        help=(
+            "camera_calibration YAML of the camera (plumb_bob or rational_polynomial): adds "
+            "position_mm, normal and sigma_mm (camera frame, millimetres) to each detection"
+        ),
+    )
+    parser.add_argument(
+        "--diameter-mm",
+        type=_diameter,
+        default=7.1,
+        help="printed diameter of the fiducials' outer circle, mm (default: 7.1)",
+    )
     parser.set_defaults(func=run)
+
+
+def _camera(path: str) -> CameraModel:
+    """argparse type: a calibration file, with a clear error when it is malformed."""
+    try:
+        return CameraModel.from_yaml(path)
+    except CalibrationError as err:
+        raise argparse.ArgumentTypeError(str(err)) from err
+
+
+def _diameter(text: str) -> float:
+    """argparse type: a positive printed diameter in millimetres."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"--diameter-mm must be a positive number, got {text!r}")
+    return value
 
 
 def ellipse_record(ellipse: Ellipse) -> dict[str, Any]:
@@ -67,7 +102,7 @@ def detection_record(detection: FiducialDetection, **_context: Any) -> dict[str,
     Keyword arguments are context for extensions (a camera, the printed diameter) and are
     ignored here.
     """
-    return {
+    record = {
         "code": int(detection.code),
         "center_px": [float(detection.center_px[0]), float(detection.center_px[1])],
         "hamming": int(detection.hamming),
@@ -75,6 +110,30 @@ def detection_record(detection: FiducialDetection, **_context: Any) -> dict[str,
         "contrast": float(detection.contrast),
         "rotation": float(detection.rotation),
         "ellipses": [ellipse_record(e) for e in detection.ellipses],
+    }
+    camera = _context.get("camera")
+    if camera is not None:
+        record.update(pose_record(detection, camera, float(_context.get("diameter_mm", 7.1))))
+    return record
+
+
+def pose_record(
+    detection: FiducialDetection, camera: CameraModel, diameter_mm: float
+) -> dict[str, Any]:
+    """Pose fields of one detection (camera frame: x right, y down, z forward; millimetres).
+
+    ``position_mm`` [x, y, z] of the fiducial's centre, unit ``normal`` [nx, ny, nz] out of the
+    printed face, ``sigma_mm`` [sx, sy, sz] standard deviations; all None when the pose circle
+    gives no real pose.
+    """
+    poses = estimate([detection], camera, diameter_mm)
+    if not poses:
+        return {"position_mm": None, "normal": None, "sigma_mm": None}
+    pose = poses[0]
+    return {
+        "position_mm": [float(x) for x in pose.position_mm],
+        "normal": [float(x) for x in pose.normal],
+        "sigma_mm": [float(x) for x in pose.sigma_mm],
     }
 
 
@@ -112,7 +171,8 @@ def _print_table(results: list[dict[str, Any]]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Process every image; exit status 1 if any could not be processed."""
-    results = [detect_file(path, args.design) for path in args.images]
+    context = {"camera": args.camera, "diameter_mm": args.diameter_mm}
+    results = [detect_file(path, args.design, **context) for path in args.images]
     failed = [r for r in results if r["error"] is not None]
     if args.json:
         json.dump({"images": results}, sys.stdout, indent=2)
