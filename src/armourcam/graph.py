@@ -66,6 +66,20 @@ def stream_qos(name: str, depth: int) -> QoSProfile:
     )
 
 
+def record_qos(name: str, depth: int) -> QoSProfile:
+    """QoS of the graph's own per-frame record streams (detections, poses).
+
+    As :func:`stream_qos`, but in ``reliable`` mode also TRANSIENT_LOCAL: a node that joins (or
+    is discovered) late still receives the last ``depth`` frames instead of losing those
+    published before the match. Publisher and subscriber of these streams both use it; a
+    VOLATILE subscriber (a viewer, ``armourcam record``) still matches.
+    """
+    profile = stream_qos(name, depth)
+    if name == "reliable":
+        profile.durability = DurabilityPolicy.TRANSIENT_LOCAL
+    return profile
+
+
 def latched_qos(depth: int = 1) -> QoSProfile:
     """RELIABLE + TRANSIENT_LOCAL: a late subscriber gets the last ``depth`` messages."""
     return QoSProfile(
@@ -444,6 +458,22 @@ class Replayer:
                 time.sleep(0.05)
         return missing
 
+    def wait_for_graph(self, topics: Sequence[str], timeout: float) -> list[str]:
+        """Wait until every topic has a subscriber in the graph other than this replayer's own
+        (e.g. the matcher on the pose topic: its frames are published by another node, so they
+        would be lost while it is still being discovered); returns the topics still waiting."""
+        own = dict.fromkeys(topics, 0)
+        for sub in self.node.subscriptions:
+            if sub.topic_name in own:
+                own[sub.topic_name] += 1
+        deadline = time.monotonic() + timeout
+        missing = list(topics)
+        while missing and time.monotonic() < deadline:
+            missing = [t for t in missing if self.node.count_subscribers(t) <= own[t]]
+            if missing:
+                time.sleep(0.05)
+        return missing
+
     def wait_confirmed(self, stamp: Any) -> bool:
         """Wait for the consumer's output stamped ``stamp``; False on timeout."""
         key = (stamp.sec, stamp.nanosec)
@@ -482,6 +512,7 @@ def replay_bag(
     confirm_topic: str = "/armourcam/detections",
     restamp: bool = True,
     wait_subscribers: float = 10.0,
+    wait_for: Sequence[str] = (),
     match_grace_s: float = 1.0,
     hall_gap_s: float = 0.3,
     settle_s: float = 0.0,
@@ -505,6 +536,9 @@ def replay_bag(
         Stamp headers with publication time (see :class:`Replayer`).
     wait_subscribers : float
         Seconds to wait for every image/camera-info publisher to be matched before starting.
+    wait_for : sequence of str
+        Topics (e.g. ``/armourcam/poses``) that must have a subscriber in the graph before
+        starting, within the same ``wait_subscribers`` seconds.
     settle_s : float
         Seconds to keep spinning after the last message (so that reliable queues drain).
     messages : callable, optional
@@ -546,6 +580,7 @@ def replay_bag(
             replayer.publisher(topic, msgtype)
         waited = [t for t, mt in topics.items() if not mt.startswith("std_msgs/")]
         missing = replayer.wait_for_subscribers(sorted(set(waited)), wait_subscribers)
+        missing += replayer.wait_for_graph(list(wait_for), wait_subscribers)
         if missing:
             node.get_logger().warning(f"no subscriber yet on {missing}; publishing anyway")
         # A publisher sees the match before the subscriber has matched it back; samples sent in

@@ -59,6 +59,7 @@ from armourcam.graph import (
     declare_parameters,
     event_qos,
     latched_qos,
+    record_qos,
     run_node,
     stamp_seconds,
     stream_qos,
@@ -256,7 +257,7 @@ class DisplacementMatcherNode(Node):
         self._pub_report = self.create_publisher(String, cfg.report_topic, latched)
         self._pub_baseline = self.create_publisher(PointCloud2, cfg.baseline_topic, latched)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        qos = stream_qos(cfg.qos, cfg.queue_depth)
+        qos = record_qos(cfg.qos, cfg.queue_depth)
         self.create_subscription(PointCloud2, cfg.poses_topic, self._on_poses, qos)
         # Hall state is latched: a (re)started matcher is told the current state. Events older
         # than this process are history already covered by the resumed session, except the

@@ -318,6 +318,8 @@ class Session:
         self._pending_run_id: str | None = None
         self._current_run_id: str | None = None
         self._current_run_id_auto = False
+        self._deferred_start: float | None = None
+        self._late_baseline: list[tuple[tuple[FiducialPose, ...], float]] = []
         self._capture_requested = False
         self._settle_count = 0
         self._stop_stamp: float | None = None
@@ -346,7 +348,8 @@ class Session:
         run_id = run_id.strip()
         if not run_id:
             return [Notice("warn", "empty run id ignored")]
-        if self._run_active or (self.phase == Phase.SETTLING and self._current_run_id_auto):
+        settling_unnamed = self.phase == Phase.SETTLING and self._current_run_id_auto
+        if self._deferred_start is None and (self._run_active or settling_unnamed):
             # Announced just before the start but delivered after it, even after the stop:
             # separate topics carry no common order. A named run keeps its name.
             self._current_run_id = run_id
@@ -371,22 +374,24 @@ class Session:
         self._run_active = active
         if active:
             if self.phase == Phase.SETTLING:
+                if (
+                    stamp_s is not None
+                    and self._stop_stamp is not None
+                    and stamp_s > self._stop_stamp
+                ):
+                    # Frames stamped before this start may still be queued behind it (separate
+                    # topics): let them settle the last run; the first frame stamped after the
+                    # start begins the new run (see add_frame).
+                    self._deferred_start = stamp_s
+                    return [Notice("info", "next run started; the last run settles first")]
                 # The next run started before the last one settled: measure it as it is.
                 events += self._finish_run(force=True)
-            self._start_stamp = stamp_s
-            self._stop_stamp = None
-            if self.baseline is None and (self._capture_requested or self.config.auto_baseline):
-                # Take the baseline from the frames before the start, including any still
-                # in flight; it is fused at the first frame stamped after the start.
-                self._baseline_due = True
-            else:
-                self._window.clear()
-            self._current_run_id_auto = self._pending_run_id is None
-            self._current_run_id = self._pending_run_id or f"run-{len(self.runs) + 1:03d}"
-            self._pending_run_id = None
-            self.phase = Phase.RUN_ACTIVE
-            events.append(Notice("info", f"run {self._current_run_id} started"))
+            events += self._start_run(stamp_s)
         else:
+            if self._deferred_start is not None:
+                # This run stopped before any frame of it arrived: close the last run first.
+                events += self._finish_run(force=True)
+                events += self._begin_deferred_run()
             if self._baseline_due:
                 events += self._baseline_from_window("auto", partial=True)
             self._stop_stamp = stamp_s
@@ -396,8 +401,33 @@ class Session:
             events.append(Notice("info", f"run {self._current_run_id} stopped; settling"))
         return events
 
+    def _start_run(self, stamp_s: float | None) -> list[Event]:
+        self._start_stamp = stamp_s
+        self._stop_stamp = None
+        if self.baseline is None and (self._capture_requested or self.config.auto_baseline):
+            # Take the baseline from the frames before the start, including any still
+            # in flight; it is fused at the first frame stamped after the start.
+            self._baseline_due = True
+        else:
+            self._window.clear()
+        self._current_run_id_auto = self._pending_run_id is None
+        self._current_run_id = self._pending_run_id or f"run-{len(self.runs) + 1:03d}"
+        self._pending_run_id = None
+        self.phase = Phase.RUN_ACTIVE
+        return [Notice("info", f"run {self._current_run_id} started")]
+
+    def _begin_deferred_run(self) -> list[Event]:
+        stamp, self._deferred_start = self._deferred_start, None
+        return self._start_run(stamp)
+
     def add_frame(self, poses: Sequence[FiducialPose], stamp_s: float = 0.0) -> list[Event]:
         """One frame's pose set (possibly empty)."""
+        nxt = self._deferred_start
+        if nxt is not None and self.phase == Phase.SETTLING and stamp_s >= nxt:
+            # The first frame of the next run: the last run is measured as it is.
+            events = self._finish_run(force=True)
+            events += self._begin_deferred_run()
+            return events + self.add_frame(poses, stamp_s)
         self.frames_seen += 1
         self.last_frame_fiducials = len(poses)
         start, stop = self._start_stamp, self._stop_stamp
@@ -411,11 +441,18 @@ class Session:
                 return []
             return self._baseline_from_window("auto", partial=True)
         if self.phase == Phase.SETTLING and stop is not None and stamp_s < stop:
+            if self.baseline is None and start is not None and stamp_s < start:
+                # Pre-run frames delayed past the whole run (a matcher discovered late, a slow
+                # pipeline): still the scene before the run, so still the baseline.
+                self._late_baseline.append((tuple(poses), float(stamp_s)))
             return []
         self._push(poses, stamp_s)
         if self.phase == Phase.SETTLING:
             self._settle_count += 1
-            return self._finish_run(force=False)
+            events = self._finish_run(force=False)
+            if nxt is not None and any(isinstance(e, RunCompleted) for e in events):
+                events += self._begin_deferred_run()
+            return events
         wants_baseline = self._capture_requested or (
             self.baseline is None and self.config.auto_baseline and not self.runs
         )
@@ -431,6 +468,7 @@ class Session:
             events += self._baseline_from_window("auto", partial=True)
         if self.phase == Phase.SETTLING:
             events += self._finish_run(force=True)
+            self._deferred_start = None
         return events
 
     # ------------------------------------------------------------------ state
@@ -493,6 +531,17 @@ class Session:
             )
         return events
 
+    def _baseline_from_late_frames(self) -> list[Event]:
+        frames = self._late_baseline[-self.config.baseline_frames :]
+        self._late_baseline.clear()
+        fused = tuple(self._fuse([f for f, _ in frames]))
+        self.baseline = Baseline(fused, len(frames), frames[-1][1], "auto")
+        self._capture_requested = False
+        self._baseline_due = False
+        self._save_baseline()
+        note = f"baseline from {len(frames)} pre-run frames that arrived after the run started"
+        return [BaselineCaptured(self.baseline), Notice("warn", note)]
+
     def _finish_run(self, *, force: bool) -> list[Event]:
         """Measure the run once the scene settled (or now, with ``force``)."""
         cfg = self.config
@@ -509,6 +558,8 @@ class Session:
             events.append(
                 Notice("warn", f"run {run_id}: scene not settled after {self._settle_count} frames")
             )
+        if self.baseline is None and self._late_baseline:
+            events += self._baseline_from_late_frames()
         report: dict[str, Any]
         markers: tuple[MarkerSpec, ...] = ()
         rows: tuple[dict[str, Any], ...] = ()

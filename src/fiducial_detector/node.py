@@ -44,6 +44,7 @@ from armourcam.graph import (
     GraphError,
     Param,
     declare_parameters,
+    record_qos,
     run_node,
     stream_qos,
 )
@@ -116,7 +117,9 @@ class FiducialDetectorNode(Node):
         if not cfg.image_topic or not cfg.detections_topic:
             raise GraphError("fiducial_detector: image_topic and detections_topic must be set")
         qos = stream_qos(cfg.qos, cfg.queue_depth)
-        self._pub = self.create_publisher(PointCloud2, cfg.detections_topic, qos)
+        self._pub = self.create_publisher(
+            PointCloud2, cfg.detections_topic, record_qos(cfg.qos, cfg.queue_depth)
+        )
         self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         msg_type: Any = CompressedImage if cfg.transport == "compressed" else Image
         self._sub = self.create_subscription(msg_type, cfg.input_topic, self._on_image, qos)

@@ -44,7 +44,14 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, PointCloud2, PointField
 
 from armourcam import records
-from armourcam.graph import GraphError, Param, declare_parameters, run_node, stream_qos
+from armourcam.graph import (
+    GraphError,
+    Param,
+    declare_parameters,
+    record_qos,
+    run_node,
+    stream_qos,
+)
 
 from .camera import CameraModel
 from .errors import CalibrationError
@@ -136,10 +143,11 @@ class PoseEstimatorNode(Node):
             except CalibrationError as err:
                 raise GraphError(f"pose_estimator: calibration_file: {err}") from err
         qos = stream_qos(cfg.qos, cfg.queue_depth)
-        self._pub = self.create_publisher(PointCloud2, cfg.poses_topic, qos)
+        records = record_qos(cfg.qos, cfg.queue_depth)
+        self._pub = self.create_publisher(PointCloud2, cfg.poses_topic, records)
         self._pub_array = self.create_publisher(PoseArray, cfg.pose_array_topic, qos)
         self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(PointCloud2, cfg.detections_topic, self._on_detections, qos)
+        self.create_subscription(PointCloud2, cfg.detections_topic, self._on_detections, records)
         if self.camera is None:
             self.create_subscription(CameraInfo, cfg.camera_info_topic, self._on_camera_info, qos)
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)

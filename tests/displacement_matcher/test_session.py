@@ -268,7 +268,9 @@ def test_next_run_before_settling_measures_the_last_run(rng: np.random.Generator
     s.set_run_active(False, 2.0)
     feed(s, [frame(truth1, rng)], 2.5)  # one frame only, then the next run starts
     s.set_run_id("B")
-    (done,) = of_type(s.set_run_active(True, 3.0), RunCompleted)
+    # The start is ordered by stamps: run A is closed by the first frame stamped after it.
+    assert not of_type(s.set_run_active(True, 3.0), RunCompleted)
+    (done,) = of_type(feed(s, [frame(truth1, rng)], 3.1), RunCompleted)
     assert done.run.run_id == "A" and done.run.report["settled"] is False
     d = disp_by_before(done.run.report, truth0)
     assert np.linalg.norm(d[4] - [6.0, 0, 0]) < 0.5
@@ -277,6 +279,51 @@ def test_next_run_before_settling_measures_the_last_run(rng: np.random.Generator
     (done_b,) = of_type(s.end_of_input(), RunCompleted)  # the bag ended while settling
     assert done_b.run.run_id == "B" and done_b.run.report["frames_fused"] == 0
     assert "error" in done_b.run.report
+
+
+def test_frames_queued_behind_the_next_start_still_settle_the_last_run(
+    rng: np.random.Generator,
+) -> None:
+    """Hall events and frames travel on separate topics: the next run's start may be handled
+    before frames stamped earlier. Those frames still settle the last run."""
+    truth0 = scene(16)
+    s = make(baseline_frames=2, settle_frames=3)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    truth1 = moved(truth0, [1], [6.0, 0, 0])
+    s.set_run_id("A")
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    s.set_run_id("B")
+    s.set_run_active(True, 5.0)  # delivered before the settled frames stamped 2.5 .. 2.7
+    (done,) = of_type(feed(s, [frame(truth1, rng) for _ in range(3)], 2.5), RunCompleted)
+    assert done.run.run_id == "A" and done.run.report["settled"] is True
+    assert s.phase == Phase.RUN_ACTIVE
+    s.set_run_active(False, 6.0)
+    (done_b,) = of_type(feed(s, [frame(truth1, rng) for _ in range(3)], 6.5), RunCompleted)
+    assert done_b.run.run_id == "B" and done_b.run.report["settled"] is True
+
+
+def test_baseline_frames_delivered_after_the_run_still_make_the_baseline(
+    rng: np.random.Generator,
+) -> None:
+    """A matcher discovered late gets the pre-run frames (TRANSIENT_LOCAL history) after the
+    hall's start and stop: stamped before the start, they are still the baseline."""
+    truth0 = scene(16)
+    truth1 = moved(truth0, [1], [6.0, 0, 0])
+    s = make(baseline_frames=3, settle_frames=2)
+    s.set_run_id("A")
+    s.set_run_active(True, 5.0)
+    s.set_run_active(False, 6.0)
+    assert s.baseline is None
+    assert not feed(s, [frame(truth0, rng) for _ in range(3)], 1.0)  # late, pre-run
+    assert not feed(s, [frame(truth1 + 20.0, rng)], 5.5)  # late, mid-run: ignored
+    events = feed(s, [frame(truth1, rng) for _ in range(2)], 6.5)
+    (cap,) = of_type(events, BaselineCaptured)
+    assert cap.baseline.n_frames == 3
+    (done,) = of_type(events, RunCompleted)
+    d = disp_by_before(done.run.report, truth0)
+    assert np.linalg.norm(d[4] - [6.0, 0, 0]) < 0.5
+    assert np.linalg.norm(d[0]) < 0.5
 
 
 def test_state_survives_a_restart(tmp_path: Path, rng: np.random.Generator) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 from rosutil import Nodes, Probe
 
 from armourcam import records
-from armourcam.graph import event_qos, latched_qos, stream_qos
+from armourcam.graph import event_qos, latched_qos, record_qos
 from pose_estimator.types import FiducialPose
 
 POSES = "/armourcam/poses"
@@ -50,7 +50,7 @@ class Hall:
 
         self.probe = probe
         n = probe.node
-        self.poses = n.create_publisher(PointCloud2, POSES, stream_qos("reliable", 50))
+        self.poses = n.create_publisher(PointCloud2, POSES, record_qos("reliable", 50))
         self.active = n.create_publisher(Bool, "/hall/run_active", event_qos())
         self.run_id = n.create_publisher(String, "/hall/run_id", event_qos())
         self.rng = np.random.default_rng(5)

@@ -44,7 +44,9 @@ def test_session_bag_through_three_processes_reports_every_run(
     probe.node.create_subscription(
         String, "/armourcam/report", lambda m: reports.append(json.loads(m.data)), latched_qos(10)
     )
-    out = armourcam("replay", str(BAG), "--as-fast-as-consumed", timeout=150)
+    out = armourcam(
+        "replay", str(BAG), "--as-fast-as-consumed", "--wait-for", "/armourcam/poses", timeout=150
+    )
     assert out.returncode == 0, out.stdout + out.stderr + nodes.log("fiducial_detector")
     assert probe.spin_until(lambda: len(reports) >= 2, 30.0), nodes.log("displacement_matcher")
     by_id = {r["run_id"]: r for r in reports}

@@ -107,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
             rate=None,
             as_fast_as_consumed=True,
             wait_subscribers=30.0,
+            wait_for=("/armourcam/poses",),
             settle_s=0.5,
             progress=_progress,
         )

@@ -55,6 +55,14 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--keep-stamps", action="store_true", help="keep the bag's header stamps")
     p.add_argument(
+        "--wait-for",
+        action="append",
+        default=[],
+        metavar="TOPIC",
+        help="also wait until TOPIC has a subscriber in the graph (repeatable), e.g. "
+        "/armourcam/poses so that the matcher sees the first frames",
+    )
+    p.add_argument(
         "--wait-subscribers",
         type=float,
         default=10.0,
@@ -114,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
         confirm_topic=args.confirm_topic,
         restamp=not args.keep_stamps,
         wait_subscribers=args.wait_subscribers,
+        wait_for=args.wait_for,
         settle_s=args.linger,
         progress=progress,
     )
