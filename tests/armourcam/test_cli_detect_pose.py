@@ -93,3 +93,21 @@ def test_bad_calibration_arguments(
         main(["detect", str(path), *[a.format(**names) for a in args]])
     assert info.value.code == 2
     assert match in capsys.readouterr()[1]
+
+
+def test_calibration_for_another_image_size_is_a_per_file_error(
+    scene: tuple[Path, Path, Target], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An image whose size differs from the calibration's gets a one-line error naming both
+    sizes; the other images are still processed."""
+    path, _, _ = scene
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(CameraModel.ideal(320, 240, FOCAL_PX).to_dict()))
+    status = main(["detect", str(path), str(path), "--camera", str(other), "--json"])
+    images = json.loads(capsys.readouterr()[0])["images"]
+    assert status == 1
+    assert len(images) == 2
+    for res in images:
+        assert res["detections"] == []
+        assert str(path) in res["error"]
+        assert "160x140" in res["error"] and "320x240" in res["error"]

@@ -141,8 +141,11 @@ def detect_file(path: str, design: str, **context: Any) -> dict[str, Any]:
     """Read and process one file; errors become the record's one-line ``error``."""
     try:
         image = read_image(path)
+        camera = context.get("camera")
+        if camera is not None:
+            camera.check_image_size(image.shape[1], image.shape[0])
         found = detect(image, design=design)  # type: ignore[arg-type]
-    except (ImageReadError, DetectorError) as err:
+    except (ImageReadError, DetectorError, CalibrationError) as err:
         message = str(err)
         if not message.startswith(path):
             message = f"{path}: {message}"
