@@ -1,39 +1,55 @@
-"""Run every benchmark in its quick form and print their tables (``make bench``).
+"""Run the benchmarks and print their tables (``make bench``, ``armourcam bench``).
 
-The full protocols (the paper's 30 noise images per case, the 5-minute graph replay) are run one at
-a time with each module's own arguments; see ``benchmarks/README.md``.
+By default each benchmark runs in a quick form that finishes in minutes on 2 cores; ``--full``
+runs the full protocols (the paper's 30 noise images per case, the 5-minute graph replay).
+Benchmarks are measurements printed as tables beside the paper's and peers' figures, never
+pass/fail tests.
 """
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 
-# (module, arguments for a run that finishes in minutes on 2 cores)
-QUICK: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("benchmarks.detector_speed", ("--quick",)),
-    ("benchmarks.detector_precision", ("--quick",)),
-    ("benchmarks.detector_recall", ("--quick",)),
-    ("benchmarks.pose_tables", ("--quick",)),
-    ("benchmarks.pose_table3", ("--images", "3")),
-    ("benchmarks.pose_speed", ()),
-    ("benchmarks.matcher_scale", ("--repeat", "1")),
-    ("benchmarks.matcher_field", ("--seeds", "1")),
-    ("benchmarks.graph_latency", ("--duration", "30")),
-)
+# name -> (arguments of the quick run, arguments of the full run)
+BENCHMARKS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "detector_speed": (("--quick",), ()),
+    "detector_precision": (("--quick",), ()),
+    "detector_recall": (("--quick",), ()),
+    "pose_tables": (("--quick",), ("--jobs", "2")),
+    "pose_table3": (("--images", "3"), ()),
+    "pose_speed": ((), ()),
+    "matcher_scale": (("--repeat", "1"), ()),
+    "matcher_field": (("--seeds", "1"), ("--seeds", "4")),
+    "graph_latency": (("--duration", "30"), ()),
+    "render_speed": (("--repeat", "1"), ()),
+}
 
 
-def main() -> int:
-    """Run each quick benchmark in its own process; returns non-zero if any failed to run."""
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the chosen benchmarks, each in its own process; non-zero if any failed to run."""
+    parser = argparse.ArgumentParser(prog="benchmarks.run_all", description=__doc__)
+    parser.add_argument(
+        "names", nargs="*", help=f"benchmarks to run (default all): {', '.join(BENCHMARKS)}"
+    )
+    parser.add_argument("--full", action="store_true", help="full protocols instead of quick runs")
+    args = parser.parse_args(argv)
+    unknown = [n for n in args.names if n not in BENCHMARKS]
+    if unknown:
+        parser.error(f"unknown benchmark(s) {unknown}; known: {', '.join(BENCHMARKS)}")
     failed = []
-    for module, args in QUICK:
-        print(f"\n=== {module} {' '.join(args)}", flush=True)
+    for name in args.names or list(BENCHMARKS):
+        quick, full = BENCHMARKS[name]
+        extra = full if args.full else quick
+        print(f"\n=== benchmarks.{name} {' '.join(extra)}", flush=True)
         start = time.monotonic()
-        status = subprocess.call([sys.executable, "-m", module, *args])
-        print(f"--- {module}: exit {status}, {time.monotonic() - start:.0f} s", flush=True)
+        status = subprocess.call([sys.executable, "-m", f"benchmarks.{name}", *extra])
+        print(f"--- {name}: exit {status}, {time.monotonic() - start:.0f} s", flush=True)
         if status != 0:
-            failed.append(module)
+            failed.append(name)
     if failed:
         print(f"\nbenchmarks that failed to run: {', '.join(failed)}", file=sys.stderr)
     return 1 if failed else 0
