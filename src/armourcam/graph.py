@@ -80,6 +80,35 @@ def record_qos(name: str, depth: int) -> QoSProfile:
     return profile
 
 
+def publish_diagnostics(
+    node: Node,
+    publisher: Any,
+    *,
+    level: str,
+    message: str,
+    hardware_id: str,
+    values: dict[str, str],
+) -> None:
+    """Publish one ``diagnostic_msgs/DiagnosticArray`` with the node's status.
+
+    ``level`` is ``"ok"``, ``"warn"`` or ``"error"``; the status is named
+    ``armourcam: <node name>`` and stamped now.
+    """
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    levels = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN}
+    status = DiagnosticStatus(
+        level=levels.get(level, DiagnosticStatus.ERROR),
+        name=f"armourcam: {node.get_name()}",
+        message=message,
+        hardware_id=hardware_id,
+        values=[KeyValue(key=k, value=v) for k, v in values.items()],
+    )
+    arr = DiagnosticArray(status=[status])
+    arr.header.stamp = node.get_clock().now().to_msg()
+    publisher.publish(arr)
+
+
 def latched_qos(depth: int = 1) -> QoSProfile:
     """RELIABLE + TRANSIENT_LOCAL: a late subscriber gets the last ``depth`` messages."""
     return QoSProfile(

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Bool, Empty, Header, String
@@ -59,6 +59,7 @@ from armourcam.graph import (
     declare_parameters,
     event_qos,
     latched_qos,
+    publish_diagnostics,
     record_qos,
     run_node,
     stamp_seconds,
@@ -402,23 +403,20 @@ class DisplacementMatcherNode(Node):
         self._pub_report.publish(String(data=json.dumps(run.report, default=_json_default)))
 
     def _publish_diagnostics(self) -> None:
-        st = self.session.status()
         phase = self.session.phase
-        level = DiagnosticStatus.OK
+        level = "ok"
         if self.last_error:
-            level = DiagnosticStatus.ERROR
+            level = "error"
         elif phase in (Phase.WAITING_BASELINE, Phase.CAPTURING_BASELINE):
-            level = DiagnosticStatus.WARN
-        status = DiagnosticStatus(
+            level = "warn"
+        publish_diagnostics(
+            self,
+            self._pub_diag,
             level=level,
-            name="armourcam: displacement_matcher",
-            message=self.last_error or f"{phase.value}",
+            message=self.last_error or phase.value,
             hardware_id="armourcam",
-            values=[KeyValue(key=k, value=v) for k, v in st.items()],
+            values=self.session.status(),
         )
-        arr = DiagnosticArray(status=[status])
-        arr.header.stamp = self.get_clock().now().to_msg()
-        self._pub_diag.publish(arr)
 
 
 def _json_default(obj: Any) -> Any:

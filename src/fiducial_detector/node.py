@@ -35,7 +35,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, cast
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 
@@ -44,6 +44,7 @@ from armourcam.graph import (
     GraphError,
     Param,
     declare_parameters,
+    publish_diagnostics,
     record_qos,
     run_node,
     stream_qos,
@@ -158,21 +159,19 @@ class FiducialDetectorNode(Node):
         self.last_ms = 1e3 * (time.perf_counter() - t0)
 
     def _publish_diagnostics(self) -> None:
-        status = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if self.dropped else DiagnosticStatus.OK,
-            name="armourcam: fiducial_detector",
+        publish_diagnostics(
+            self,
+            self._diag,
+            level="warn" if self.dropped else "ok",
             message=self.last_error or "ok",
             hardware_id=self.config.input_topic,
-            values=[
-                KeyValue(key="frames_received", value=str(self.received)),
-                KeyValue(key="frames_published", value=str(self.published)),
-                KeyValue(key="frames_dropped", value=str(self.dropped)),
-                KeyValue(key="last_frame_ms", value=f"{self.last_ms:.1f}"),
-            ],
+            values={
+                "frames_received": str(self.received),
+                "frames_published": str(self.published),
+                "frames_dropped": str(self.dropped),
+                "last_frame_ms": f"{self.last_ms:.1f}",
+            },
         )
-        arr = DiagnosticArray(status=[status])
-        arr.header.stamp = self.get_clock().now().to_msg()
-        self._diag.publish(arr)
 
 
 NODE_CLASS = FiducialDetectorNode

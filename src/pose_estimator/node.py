@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Pose, PoseArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -48,6 +48,7 @@ from armourcam.graph import (
     GraphError,
     Param,
     declare_parameters,
+    publish_diagnostics,
     record_qos,
     run_node,
     stream_qos,
@@ -229,23 +230,21 @@ class PoseEstimatorNode(Node):
     def _publish_diagnostics(self) -> None:
         ok = self.camera is not None and not self.dropped
         cam = f"{self.camera.width}x{self.camera.height}" if self.camera else "waiting"
-        status = DiagnosticStatus(
-            level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
-            name="armourcam: pose_estimator",
+        publish_diagnostics(
+            self,
+            self._diag,
+            level="ok" if ok else "warn",
             message=self.last_error or ("ok" if self.camera else "waiting for camera info"),
             hardware_id=self.config.calibration_file or self.config.camera_info_topic,
-            values=[
-                KeyValue(key="camera", value=cam),
-                KeyValue(key="frames_received", value=str(self.received)),
-                KeyValue(key="frames_published", value=str(self.published)),
-                KeyValue(key="frames_dropped", value=str(self.dropped)),
-                KeyValue(key="frames_pending", value=str(len(self._pending))),
-                KeyValue(key="last_frame_ms", value=f"{self.last_ms:.1f}"),
-            ],
+            values={
+                "camera": cam,
+                "frames_received": str(self.received),
+                "frames_published": str(self.published),
+                "frames_dropped": str(self.dropped),
+                "frames_pending": str(len(self._pending)),
+                "last_frame_ms": f"{self.last_ms:.1f}",
+            },
         )
-        arr = DiagnosticArray(status=[status])
-        arr.header.stamp = self.get_clock().now().to_msg()
-        self._diag.publish(arr)
 
 
 NODE_CLASS = PoseEstimatorNode
