@@ -41,7 +41,6 @@ def test_session_bag_layout_and_truth(tmp_path: Path) -> None:
     assert truth["runs"][1]["incremental"]["displaced_units"] == 0
 
 
-@pytest.mark.skipif(not BAG.exists(), reason="bags/session_small missing (armourcam make-bags)")
 def test_analyze_session_bag_reports_every_run(tmp_path: Path) -> None:
     truth = sessionbag.read_truth(BAG)
     assert truth is not None
@@ -74,7 +73,6 @@ def test_analyze_session_bag_reports_every_run(tmp_path: Path) -> None:
     assert seen["/armourcam/markers"] == 2 and seen["/armourcam/poses"] == 17
 
 
-@pytest.mark.skipif(not FIXTURE.exists(), reason="real fixture missing")
 def test_analyze_real_ros1_bag_finds_no_fiducials(tmp_path: Path) -> None:
     result = analyze_bag(FIXTURE, tmp_path, session_config=SessionConfig(baseline_frames=1))
     assert result.frames == 1

@@ -94,7 +94,6 @@ def test_reliable_replay_loses_no_frame(
     assert nodes.alive("fiducial_detector") and nodes.alive("pose_estimator")
 
 
-@pytest.mark.skipif(not FIXTURE.exists(), reason="real fixture bag missing")
 def test_real_fixture_bag_replays_and_yields_zero_fiducials(nodes: Nodes, probe: Probe) -> None:
     start_pipeline(nodes, transport="compressed")
     counter = Counter(probe)

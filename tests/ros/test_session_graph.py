@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 from rosutil import REPO, Nodes, Probe, armourcam
 
 from armourcam import sessionbag
@@ -21,7 +20,6 @@ def still_unit_positions(part: dict) -> np.ndarray:
     return np.array([f["before_mm"] for f in part["fiducials"] if f["unit"] in still])
 
 
-@pytest.mark.skipif(not BAG.exists(), reason="bags/session_small missing (armourcam make-bags)")
 def test_session_bag_through_three_processes_reports_every_run(
     nodes: Nodes, probe: Probe, tmp_path: Path
 ) -> None:
