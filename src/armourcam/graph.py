@@ -218,18 +218,25 @@ def stamp_seconds(stamp: Any) -> float:
     return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
 
 
-def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
-    """The ``main()`` of every node: init, spin until Ctrl-C or shutdown, clean up.
+def _run_nodes(
+    argv: Sequence[str],
+    factories: Sequence[Callable[[], Node]],
+    make_executor: Callable[[], SingleThreadedExecutor | MultiThreadedExecutor],
+) -> int:
+    """Init, build the nodes, spin them on one executor until Ctrl-C or shutdown, clean up.
 
     A node whose parameters are invalid raises :class:`GraphError` in its constructor; that ends
     the process with status 2 and a one-line error, before any topic is touched.
     """
-    rclpy.init(args=list(args) if args is not None else sys.argv)
-    node: Node | None = None
+    rclpy.init(args=list(argv))
+    executor = make_executor()
+    nodes: list[Node] = []
     status = 0
     try:
-        node = factory()
-        rclpy.spin(node)
+        for factory in factories:
+            nodes.append(factory())
+            executor.add_node(nodes[-1])
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except GraphError as err:
@@ -240,10 +247,18 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
         if rclpy.ok():
             raise
     finally:
-        if node is not None:
-            node.destroy_node()
+        executor.shutdown()
+        for n in nodes:
+            n.destroy_node()
         rclpy.try_shutdown()
     return status
+
+
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+    """The ``main()`` of every node (see :func:`_run_nodes` for errors and shutdown)."""
+    return _run_nodes(
+        list(args) if args is not None else sys.argv, [factory], SingleThreadedExecutor
+    )
 
 
 def node_factories() -> dict[str, Callable[[], Node]]:
@@ -262,30 +277,11 @@ def run_one_process(
     argv = ["armourcam-graph", "--ros-args", *ros_args]
     if params_file:
         argv += ["--params-file", str(params_file)]
-    rclpy.init(args=argv)
-    nodes: list[Node] = []
-    executor = MultiThreadedExecutor(num_threads=3) if multithreaded else SingleThreadedExecutor()
-    status = 0
-    try:
-        for factory in node_factories().values():
-            nodes.append(factory())
-        for n in nodes:
-            executor.add_node(n)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except GraphError as err:
-        print(f"error: {err}", file=sys.stderr)
-        status = 2
-    except RCLError:
-        if rclpy.ok():
-            raise
-    finally:
-        executor.shutdown()
-        for n in nodes:
-            n.destroy_node()
-        rclpy.try_shutdown()
-    return status
+
+    def make_executor() -> SingleThreadedExecutor | MultiThreadedExecutor:
+        return MultiThreadedExecutor(num_threads=3) if multithreaded else SingleThreadedExecutor()
+
+    return _run_nodes(argv, list(node_factories().values()), make_executor)
 
 
 def node_command(
