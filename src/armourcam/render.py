@@ -20,14 +20,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from fiducial_detector.design import FiducialDesign, get_design, reflectance
+from fiducial_detector.design import PAPER_RADIUS, FiducialDesign, get_design, reflectance
 from pose_estimator.camera import CameraModel
 
 # Paper-white and toner-black levels as fractions of the sensor's full range.
 WHITE = 0.85
 BLACK = 0.12
 BACKGROUND = 0.45
-MARGIN = 1.3  # the white paper disc around a printed fiducial, in outer radii
+MARGIN = PAPER_RADIUS  # the white paper disc around a printed fiducial, in outer radii
 
 ReflectanceFn = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 

@@ -84,6 +84,23 @@ class FiducialDesign:
         """Radius at which the coding track is read."""
         return 0.5 * (self.track_inner + self.track_outer)
 
+    def neighbour_edges(self, radius: float) -> tuple[float, float]:
+        """Radii of the nearest printed edges inside and outside a circle of this design.
+
+        Every printed edge counts (circles, the coding track's limits, the annulus) and the paper's
+        edge at :data:`PAPER_RADIUS` outside; 0 inside the central dot.
+        """
+        edges = {c.radius for c in self.circles} | {self.track_inner, self.track_outer, 1.0}
+        if self.annulus_inner is not None:
+            edges.add(self.annulus_inner)
+        inner = max((e for e in edges if e < radius - 1e-9), default=0.0)
+        outer = min((e for e in edges if e > radius + 1e-9), default=PAPER_RADIUS)
+        return inner, outer
+
+
+#: Radius (fraction of the outer radius) of the white paper left around every printed target: the
+#: sheet's cut marks leave 15 % of the diameter on each side (``armourcam.printing.CUT_MARGIN``).
+PAPER_RADIUS = 1.3
 
 DOT = FiducialDesign(
     name="dot",
