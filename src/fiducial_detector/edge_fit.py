@@ -55,6 +55,8 @@ _MIN_SPREAD_PX, _MAX_SPREAD_PX = 0.25, 4.0
 #: Largest geometric step of one iteration, pixels (a Gauss-Newton step can overshoot far from
 #: the optimum; the seed is within about a pixel).
 _MAX_STEP_PX = 1.0
+#: A fit whose last step moved its edges less than this (pixels) has converged.
+_CONVERGED_PX = 1e-3
 _MIN_PIXELS = 16
 #: Largest curvature times spread where the shifted-step model holds (first order in it).
 _MAX_CURVATURE_SPREAD = 0.35
@@ -350,7 +352,7 @@ def _gauss_newton(
     """
     k, n_edges = seeds.shape[0], seeds.shape[1]
     npar = 5 * n_edges + 3
-    im, ih, isp = npar - 3, npar - 2, npar - 1
+    ih, isp = npar - 2, npar - 1
     f32 = np.float32
     # Coordinates relative to the outer seed's centre keep float32 exact to 1e-5 px.
     ref = seeds[:, 0, :2].copy()
@@ -372,95 +374,50 @@ def _gauss_newton(
     normal = np.zeros((k, npar, npar))
     count = np.zeros(k, dtype=np.intp)
     chi = np.full(k, np.nan)
+    model = _EdgeModel(signs, band32, (f32(lo), f32(hi)), (gap_in, gap_out), sigma)
+    # Fits that have converged leave the batch: later iterations cost only what still moves.
+    rows = np.arange(k)
     for it in range(iterations + 1):
-        geos = [_geometry(theta[:, 5 * e : 5 * e + 5], du0, dv0) for e in range(n_edges)]
-        s = theta[:, isp : isp + 1].astype(np.float32)
-        outer_g, inner_g = geos[0], geos[-1]
-        mask = valid & (outer_g.d <= band32) & (inner_g.d >= -band32)
-        mask &= (outer_g.rho <= f32(hi)) & (inner_g.rho >= f32(lo))
-        if n_edges == 1:
-            mask &= np.abs(outer_g.d) <= band32
-        # Where an unmodelled neighbouring edge comes within a few spreads (a thin annulus seen
-        # obliquely) its blur reaches this edge's pixels: leave those parts of the edge out.
-        least = f32(_MIN_GAP_SPREADS) * s
-        beyond = outer_g.rho > f32(1.0)
-        mask &= ~beyond | (gap_out * outer_g.rho >= least * outer_g.gn)
-        # Pixels nearer the inner edge than the outer one (all of them for a single edge).
-        within = ~beyond
-        if n_edges > 1:
-            within &= np.abs(inner_g.d) < np.abs(outer_g.d)
-        mask &= ~within | (gap_in * inner_g.rho >= least * inner_g.gn)
-        step_sum = np.zeros_like(du0)
-        gauss_l: list[NDArray[np.float32]] = []
-        for sign, geo in zip(signs, geos, strict=True):
-            # Where the edge bends within the blur (the tips of a thin ellipse) the blurred
-            # profile is no longer a shifted step: those pixels would bias the fit.
-            near = np.abs(geo.d) <= band32 + f32(1.0)
-            mask &= ~near | (geo.kappa * s <= f32(_MAX_CURVATURE_SPREAD))
-            t = np.asarray((geo.d + f32(0.5) * geo.kappa * s * s) / s, dtype=np.float32)
-            gauss = np.exp(f32(-0.5) * t * t)
-            step_sum += f32(sign) * _erf_scaled(t, gauss)
-            gauss_l.append(gauss)
         if it == 0:
-            # Levels first, by linear least squares at the seed geometry.
-            theta[:, im], theta[:, ih] = _levels(intensity, step_sum, mask)
-            theta[:, ih] = np.where(theta[:, ih] * polarity > 0, theta[:, ih], polarity * 1e-3)
-        h = theta[:, ih : ih + 1].astype(np.float32)
-        resid = intensity - (theta[:, im : im + 1].astype(np.float32) + h * step_sum)
-        # Rows of J^T, one per parameter, zero outside the band; float32 products keep the
-        # batched sums in single-precision BLAS (relative error ~1e-6, far below the noise).
-        jac = np.empty((k, npar, pu.shape[1]), dtype=np.float32)
-        jac[:, isp] = 0.0
-        for e, (sign, geo) in enumerate(zip(signs, geos, strict=True)):
-            g = (h * f32(sign * _SQRT_2_PI)) * gauss_l[e]  # dI/dt of this edge
-            gs = g / s
-            for col, dd in enumerate(geo.dd):
-                np.multiply(gs, dd, out=jac[:, 5 * e + col])
-            jac[:, isp] += g * (geo.kappa * f32(0.5) - geo.d / (s * s))
-        jac[:, im] = 1.0
-        jac[:, ih] = step_sum
-        jac *= mask[:, None, :]
-        resid = np.where(mask, resid, f32(0.0))
-        normal = (jac @ np.swapaxes(jac, 1, 2)).astype(np.float64)
-        rhs = (jac @ resid[:, :, None])[:, :, 0].astype(np.float64)
-        if tie is not None:
-            # The prior on inner - ratio * outer, as extra residuals (in noise units).
-            jt, ratio = tie
-            diff = theta[:, 5:10].copy()
-            diff[:, :2] -= theta[:, :2]
-            diff[:, 2:] -= theta[:, 2:5] / ratio[:, None] ** 2
-            normal += jt @ np.swapaxes(jt, 1, 2)
-            rhs -= _tie_rhs(jt, diff)
-        count = mask.sum(axis=1)
-        chi = np.sqrt(np.einsum("kl,kl->k", resid, resid) / np.maximum(count - npar, 1))
-        chi /= sigma
+            model.init_levels(theta, du0, dv0, intensity, valid, polarity)
+        tie_rows = None if tie is None else (tie[0][rows], tie[1][rows])
+        nrm, rhs, cnt, chi_rows = model.normal_equations(
+            theta[rows], du0[rows], dv0[rows], intensity[rows], valid[rows], tie_rows
+        )
+        normal[rows], count[rows], chi[rows] = nrm, cnt, chi_rows
         if it == iterations:
             break
         # Marquardt damping of the diagonal keeps early steps short where the model is poor.
-        diag = np.einsum("kii->ki", normal)
-        damp = normal + 1e-3 * diag[:, :, None] * np.eye(npar)
-        enough = count >= _MIN_PIXELS * n_edges
-        step = np.zeros((k, npar))
-        good = enough & ok & np.all(np.isfinite(damp), axis=(1, 2)) & np.all(diag > 0, axis=1)
+        diag = np.einsum("kii->ki", nrm)
+        damp = nrm + 1e-3 * diag[:, :, None] * np.eye(npar)
+        enough = cnt >= _MIN_PIXELS * n_edges
+        step = np.zeros((rows.size, npar))
+        good = enough & ok[rows] & np.all(np.isfinite(damp), axis=(1, 2))
+        good &= np.all(diag > 0, axis=1)
         if np.any(good):
             step[good] = _safe_solve(damp[good], rhs[good])
-        ok &= enough & np.all(np.isfinite(step), axis=1)
-        step[~ok] = 0.0
+        ok[rows] &= enough & np.all(np.isfinite(step), axis=1)
+        step[~ok[rows]] = 0.0
         # Largest implied edge shift: a centre's step, or a form's relative change.
-        shift = np.zeros(k)
+        shift = np.zeros(rows.size)
         for e in range(n_edges):
-            q = theta[:, 5 * e + 2 : 5 * e + 5]
+            q = theta[rows, 5 * e + 2 : 5 * e + 5]
             dq = step[:, 5 * e + 2 : 5 * e + 5]
             form = (np.abs(dq[:, 0]) + 2 * np.abs(dq[:, 1]) + np.abs(dq[:, 2])) / (
                 q[:, 0] + q[:, 2]
             )
             centre = np.max(np.abs(step[:, 5 * e : 5 * e + 2]), axis=1)
-            shift = np.maximum(shift, np.maximum(centre, form * scale))
+            shift = np.maximum(shift, np.maximum(centre, form * scale[rows]))
         step *= np.minimum(1.0, _MAX_STEP_PX / np.maximum(shift, 1e-12))[:, None]
         # The spread is poorly determined while the edge is misplaced: bounded relative steps.
-        step[:, isp] = np.clip(step[:, isp], -0.5 * theta[:, isp], 0.5 * theta[:, isp])
-        theta += step
-        theta[:, isp] = np.clip(theta[:, isp], _MIN_SPREAD_PX, _MAX_SPREAD_PX)
+        sp = theta[rows, isp]
+        step[:, isp] = np.clip(step[:, isp], -0.5 * sp, 0.5 * sp)
+        theta[rows] += step
+        theta[rows, isp] = np.clip(theta[rows, isp], _MIN_SPREAD_PX, _MAX_SPREAD_PX)
+        moving = ok[rows] & (shift > _CONVERGED_PX)
+        rows = rows[moving]
+        if rows.size == 0:
+            break
     cov_all = np.full((k, npar, npar), np.nan)
     good = ok & (count >= _MIN_PIXELS * n_edges)
     if np.any(good):
@@ -485,6 +442,137 @@ def _gauss_newton(
     ok &= np.nan_to_num(drift, nan=np.inf) <= 2.0 * (band + _GATHER_SLACK_PX)
     ok &= np.all(np.nan_to_num(params[:, :, 3], nan=0.0) > 0.5, axis=1)
     return _BlockFit(params, cov, 2.0 * theta[:, ih], theta[:, isp], chi, count, ok)
+
+
+class _EdgeModel:
+    """The blurred-edge intensity model of one block: masks, residuals and normal equations."""
+
+    def __init__(
+        self,
+        signs: tuple[float, ...],
+        band: np.float32,
+        rho_limits: tuple[np.float32, np.float32],
+        gaps: tuple[np.float32, np.float32],
+        sigma: float,
+    ) -> None:
+        self.signs, self.band, self.rho_limits, self.gaps, self.sigma = (
+            signs,
+            band,
+            rho_limits,
+            gaps,
+            sigma,
+        )
+        self.n_edges = len(signs)
+        self.npar = 5 * self.n_edges + 3
+
+    def _terms(
+        self,
+        theta: NDArray[np.float64],
+        du0: NDArray[np.float32],
+        dv0: NDArray[np.float32],
+        valid: NDArray[np.bool_],
+    ) -> tuple[
+        list[_Geometry],
+        NDArray[np.bool_],
+        NDArray[np.float32],
+        list[NDArray[np.float32]],
+        NDArray[np.float32],
+    ]:
+        """Geometry of every edge, the pixel mask, the summed steps, each edge's Gaussian, s."""
+        f32 = np.float32
+        n_edges, band = self.n_edges, self.band
+        lo, hi = self.rho_limits
+        gap_in, gap_out = self.gaps
+        isp = self.npar - 1
+        geos = [_geometry(theta[:, 5 * e : 5 * e + 5], du0, dv0) for e in range(n_edges)]
+        s = theta[:, isp : isp + 1].astype(np.float32)
+        outer_g, inner_g = geos[0], geos[-1]
+        mask = valid & (outer_g.d <= band) & (inner_g.d >= -band)
+        mask &= (outer_g.rho <= hi) & (inner_g.rho >= lo)
+        if n_edges == 1:
+            mask &= np.abs(outer_g.d) <= band
+        # Where an unmodelled neighbouring edge comes within a few spreads (a thin annulus seen
+        # obliquely) its blur reaches this edge's pixels: leave those parts of the edge out.
+        least = f32(_MIN_GAP_SPREADS) * s
+        beyond = outer_g.rho > f32(1.0)
+        mask &= ~beyond | (gap_out * outer_g.rho >= least * outer_g.gn)
+        # Pixels nearer the inner edge than the outer one (all of them for a single edge).
+        within = ~beyond
+        if n_edges > 1:
+            within &= np.abs(inner_g.d) < np.abs(outer_g.d)
+        mask &= ~within | (gap_in * inner_g.rho >= least * inner_g.gn)
+        step_sum = np.zeros_like(du0)
+        gauss_l: list[NDArray[np.float32]] = []
+        for sign, geo in zip(self.signs, geos, strict=True):
+            # Where the edge bends within the blur (the tips of a thin ellipse) the blurred
+            # profile is no longer a shifted step: those pixels would bias the fit.
+            near = np.abs(geo.d) <= band + f32(1.0)
+            mask &= ~near | (geo.kappa * s <= f32(_MAX_CURVATURE_SPREAD))
+            t = np.asarray((geo.d + f32(0.5) * geo.kappa * s * s) / s, dtype=np.float32)
+            gauss = np.exp(f32(-0.5) * t * t)
+            step_sum += f32(sign) * _erf_scaled(t, gauss)
+            gauss_l.append(gauss)
+        return geos, mask, step_sum, gauss_l, s
+
+    def init_levels(
+        self,
+        theta: NDArray[np.float64],
+        du0: NDArray[np.float32],
+        dv0: NDArray[np.float32],
+        intensity: NDArray[np.float32],
+        valid: NDArray[np.bool_],
+        polarity: NDArray[np.float64],
+    ) -> None:
+        """Mid level and half contrast by linear least squares at the seed geometry (in place)."""
+        im, ih = self.npar - 3, self.npar - 2
+        _, mask, step_sum, _, _ = self._terms(theta, du0, dv0, valid)
+        theta[:, im], theta[:, ih] = _levels(intensity, step_sum, mask)
+        theta[:, ih] = np.where(theta[:, ih] * polarity > 0, theta[:, ih], polarity * 1e-3)
+
+    def normal_equations(
+        self,
+        theta: NDArray[np.float64],
+        du0: NDArray[np.float32],
+        dv0: NDArray[np.float32],
+        intensity: NDArray[np.float32],
+        valid: NDArray[np.bool_],
+        tie: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]]:
+        """``J^T J``, ``J^T r``, the pixel count and chi at ``theta`` (rows of the block)."""
+        f32 = np.float32
+        npar = self.npar
+        im, ih, isp = npar - 3, npar - 2, npar - 1
+        geos, mask, step_sum, gauss_l, s = self._terms(theta, du0, dv0, valid)
+        k = theta.shape[0]
+        h = theta[:, ih : ih + 1].astype(np.float32)
+        resid = intensity - (theta[:, im : im + 1].astype(np.float32) + h * step_sum)
+        # Rows of J^T, one per parameter, zero outside the band; float32 products keep the
+        # batched sums in single-precision BLAS (relative error ~1e-6, far below the noise).
+        jac = np.empty((k, npar, du0.shape[1]), dtype=np.float32)
+        jac[:, isp] = 0.0
+        for e, (sign, geo) in enumerate(zip(self.signs, geos, strict=True)):
+            g = (h * f32(sign * _SQRT_2_PI)) * gauss_l[e]  # dI/dt of this edge
+            gs = g / s
+            for col, dd in enumerate(geo.dd):
+                np.multiply(gs, dd, out=jac[:, 5 * e + col])
+            jac[:, isp] += g * (geo.kappa * f32(0.5) - geo.d / (s * s))
+        jac[:, im] = 1.0
+        jac[:, ih] = step_sum
+        jac *= mask[:, None, :]
+        resid = np.where(mask, resid, f32(0.0))
+        normal = (jac @ np.swapaxes(jac, 1, 2)).astype(np.float64)
+        rhs = (jac @ resid[:, :, None])[:, :, 0].astype(np.float64)
+        if tie is not None:
+            # The prior on inner - ratio * outer, as extra residuals (in noise units).
+            jt, ratio = tie
+            diff = theta[:, 5:10].copy()
+            diff[:, :2] -= theta[:, :2]
+            diff[:, 2:] -= theta[:, 2:5] / ratio[:, None] ** 2
+            normal += jt @ np.swapaxes(jt, 1, 2)
+            rhs -= _tie_rhs(jt, diff)
+        count = mask.sum(axis=1)
+        chi = np.sqrt(np.einsum("kl,kl->k", resid, resid) / np.maximum(count - npar, 1))
+        return normal, rhs, count.astype(np.intp), chi / self.sigma
 
 
 def _tie(
