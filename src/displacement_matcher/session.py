@@ -14,9 +14,11 @@ A monitoring session between wave runs, as a lab runs it:
    sections 2.2 and 3 steps 5-6) and against the previous run's set (incremental); the report is
    tagged with the run id.
 
-Nothing is lost: the baseline and every run (its fused poses and its report) are written
+Nothing is lost: the baseline, every run (its fused poses and its report) and the run in
+progress (its id and stamps, at every start, stop and completion: ``session.json``) are written
 atomically (temporary file + ``os.replace``) to ``data_dir``; a new :class:`Session` on the same
-directory resumes with them.
+directory resumes with them, and a run that was active or still settling when the matcher died is
+measured on the frames that come after the restart.
 
 Frames are pose sets in the camera frame (millimetres, OpenCV axes) as produced by
 :func:`pose_estimator.estimate`; times are seconds (ROS header stamps).
@@ -43,6 +45,8 @@ from scipy.spatial import cKDTree
 from pose_estimator.types import FiducialPose
 
 FORMAT_VERSION = 1
+#: The run in progress, beside ``baseline.json`` and ``runs/`` in the data directory.
+SESSION_STATE_FILE = "session.json"
 
 Fuser = Callable[[Sequence[Sequence[FiducialPose]]], list[FiducialPose]]
 Comparer = Callable[[Sequence[FiducialPose], Sequence[FiducialPose]], "Comparison"]
@@ -329,7 +333,7 @@ class Session:
         self.phase = Phase.WAITING_BASELINE
         if config.data_dir is not None:
             self._load(Path(config.data_dir))
-        if self.baseline is not None:
+        if self.baseline is not None and self.phase == Phase.WAITING_BASELINE:
             self.phase = Phase.MONITORING
 
     # ------------------------------------------------------------------ inputs
@@ -354,6 +358,7 @@ class Session:
             # separate topics carry no common order. A named run keeps its name.
             self._current_run_id = run_id
             self._current_run_id_auto = False
+            self._save_state()
         elif self.runs and self.runs[-1].run_id == run_id and self.phase != Phase.SETTLING:
             return [Notice("info", f"run id {run_id} already measured; ignored")]
         else:
@@ -398,6 +403,7 @@ class Session:
             self._window.clear()
             self._settle_count = 0
             self.phase = Phase.SETTLING
+            self._save_state()
             events.append(Notice("info", f"run {self._current_run_id} stopped; settling"))
         return events
 
@@ -414,6 +420,7 @@ class Session:
         self._current_run_id = self._pending_run_id or f"run-{len(self.runs) + 1:03d}"
         self._pending_run_id = None
         self.phase = Phase.RUN_ACTIVE
+        self._save_state()
         return [Notice("info", f"run {self._current_run_id} started")]
 
     def _begin_deferred_run(self) -> list[Event]:
@@ -594,6 +601,7 @@ class Session:
         self._current_run_id = None
         self._window.clear()
         self.phase = Phase.MONITORING if self.baseline is not None else Phase.WAITING_BASELINE
+        self._save_state()
         events.append(RunCompleted(run))
         return events
 
@@ -642,6 +650,48 @@ class Session:
         name = f"{run.sequence:04d}-{_safe_name(run.run_id)}.json"
         write_json_atomic(Path(self.config.data_dir) / "runs" / name, doc)
 
+    def _save_state(self) -> None:
+        """The run in progress (active or settling), so that a restarted matcher measures it.
+
+        Written atomically at every start, stop and completion; the settling frames themselves
+        are not kept (after a restart the run settles on the frames that come next).
+        """
+        if self.config.data_dir is None:
+            return
+        in_run = self.phase in (Phase.RUN_ACTIVE, Phase.SETTLING)
+        doc = {
+            "format": FORMAT_VERSION,
+            "kind": "session",
+            "phase": self.phase.value if in_run else None,
+            "run_active": self._run_active if in_run else False,
+            "run_id": self._current_run_id if in_run else None,
+            "run_id_auto": self._current_run_id_auto,
+            "start_stamp_s": self._start_stamp if in_run else None,
+            "stop_stamp_s": self._stop_stamp if in_run else None,
+            "baseline_due": self._baseline_due if in_run else False,
+        }
+        write_json_atomic(Path(self.config.data_dir) / SESSION_STATE_FILE, doc)
+
+    def _load_state(self, path: Path) -> None:
+        doc = _read_json(path)
+        try:
+            phase = doc["phase"]
+            if phase is None:
+                return
+            self.phase = Phase(phase)
+            if self.phase not in (Phase.RUN_ACTIVE, Phase.SETTLING):
+                raise ValueError(f"phase {phase!r} is not a run in progress")
+            self._run_active = bool(doc["run_active"])
+            run_id = doc["run_id"]
+            self._current_run_id = None if run_id is None else str(run_id)
+            self._current_run_id_auto = bool(doc["run_id_auto"])
+            start, stop = doc["start_stamp_s"], doc["stop_stamp_s"]
+            self._start_stamp = None if start is None else float(start)
+            self._stop_stamp = None if stop is None else float(stop)
+            self._baseline_due = bool(doc["baseline_due"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise SessionError(f"{path}: malformed session state: {err}") from err
+
     def _load(self, data_dir: Path) -> None:
         path = data_dir / "baseline.json"
         if path.exists():
@@ -673,6 +723,9 @@ class Session:
                 except (KeyError, TypeError, ValueError) as err:
                     raise SessionError(f"{run_path}: malformed run record: {err}") from err
             self.runs.sort(key=lambda r: r.sequence)
+        state = data_dir / SESSION_STATE_FILE
+        if state.exists():
+            self._load_state(state)
 
 
 # ---------------------------------------------------------------------- helpers

@@ -362,6 +362,49 @@ def test_state_survives_a_restart(tmp_path: Path, rng: np.random.Generator) -> N
     assert np.linalg.norm(cum[3] - [5.0, 4.0, 0]) < 0.5
 
 
+def test_a_run_in_progress_survives_a_restart(tmp_path: Path, rng: np.random.Generator) -> None:
+    """The matcher dies after the hall stopped the run but before the scene settled: the new
+    process still measures that run, under its id, once the scene settles."""
+    truth0 = scene()
+    s = make(tmp_path, baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    s.set_run_id("R7")
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    truth1 = moved(truth0, [1], [0.0, 6.0, 0])
+    feed(s, [frame(truth1, rng)], 2.5)  # one frame: not settled yet
+    assert s.phase == Phase.SETTLING and not s.runs
+    del s  # the crash
+
+    r = make(tmp_path, baseline_frames=2, settle_frames=2)
+    assert r.phase == Phase.SETTLING
+    # Frames stamped before the stop (still in flight) do not count; settled ones measure it.
+    assert not of_type(feed(r, [frame(truth0, rng)], 1.5), RunCompleted)
+    (done,) = of_type(feed(r, [frame(truth1, rng) for _ in range(2)], 3.0), RunCompleted)
+    assert done.run.run_id == "R7" and done.run.sequence == 1
+    cum = disp_by_before(done.run.report, truth0)
+    assert np.linalg.norm(cum[4] - [0, 6.0, 0]) < 0.5
+    # Measured: a further restart has nothing pending.
+    again = make(tmp_path, baseline_frames=2, settle_frames=2)
+    assert again.phase == Phase.MONITORING and [x.run_id for x in again.runs] == ["R7"]
+
+    # A restart while waves are running resumes the active run: its stop settles it.
+    again.set_run_id("R8")
+    again.set_run_active(True, 4.0)
+    third = make(tmp_path, baseline_frames=2, settle_frames=2)
+    assert third.phase == Phase.RUN_ACTIVE
+    third.set_run_active(True, 4.0)  # the hall's latched state, delivered again: harmless
+    third.set_run_active(False, 5.0)
+    (done,) = of_type(feed(third, [frame(truth1, rng) for _ in range(2)], 5.5), RunCompleted)
+    assert done.run.run_id == "R8" and done.run.sequence == 2
+
+
+def test_corrupt_session_state_is_a_clear_error(tmp_path: Path) -> None:
+    (tmp_path / "session.json").write_text('{"phase": "flying"}')
+    with pytest.raises(SessionError, match=r"session\.json"):
+        make(tmp_path)
+
+
 def test_corrupt_data_dir_is_a_clear_error(tmp_path: Path) -> None:
     (tmp_path / "baseline.json").write_text("{not json")
     with pytest.raises(SessionError, match=r"baseline\.json"):
