@@ -139,30 +139,65 @@ def _decode_table() -> tuple[NDArray[np.int16], NDArray[np.int8], NDArray[np.int
 
 
 @lru_cache(maxsize=1)
-def _all_words() -> NDArray[np.int64]:
-    """Every rotation of every code word as a 16-bit integer, shape (codes * BITS,)."""
-    weights = (1 << np.arange(BITS)).astype(np.int64)
-    return (rotation_table().astype(np.int64) * weights).sum(axis=2).ravel()
+def _distance_table() -> NDArray[np.int8]:
+    """Hamming distance of every 16-bit word to the nearest rotation of any code.
 
-
-@lru_cache(maxsize=1)
-def _popcount16() -> NDArray[np.uint8]:
-    return np.array([bin(i).count("1") for i in range(1 << BITS)], dtype=np.uint8)
-
-
-def _nearest_distance(words: NDArray[np.int64], known: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Distance to the nearest code rotation; computed only where the table says it is > 1."""
-    out = known.copy()
-    far = np.nonzero(known > 1)[0]
-    if far.size:
-        xor = words[far, None] ^ _all_words()[None, :]
-        out[far] = _popcount16()[xor].min(axis=1)
-    return out
+    A distance transform on the 16-cube: start at 0 on the code rotations and relax across every
+    single-bit edge until nothing changes (a few passes, once per process, ~20 ms); a lookup then
+    replaces comparing each word read with all code rotations on every frame.
+    """
+    dist = np.full(1 << BITS, BITS + 1, dtype=np.int8)
+    dist[_decode_table()[2] == 0] = 0
+    words = np.arange(1 << BITS)
+    changed = True
+    while changed:
+        changed = False
+        for bit in range(BITS):
+            step = dist[words ^ (1 << bit)] + 1
+            better = step < dist
+            if better.any():
+                dist[better] = step[better]
+                changed = True
+    return dist
 
 
 def _rot2(angle: NDArray[np.float64]) -> NDArray[np.float64]:
     c, s = np.cos(angle), np.sin(angle)
     return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (N, 2, 2)
+
+
+def _track_maps(
+    centre: NDArray[np.float64],
+    axes: NDArray[np.float64],
+    angle: NDArray[np.float64],
+    r0: float,
+    drift: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    params: NDArray[np.float64],
+    dtype: type[np.floating[Any]] = np.float64,
+) -> tuple[NDArray[Any], NDArray[Any]]:
+    """Columns ``u`` and rows ``v`` of :func:`track_points`, each (N, K) of ``dtype``.
+
+    Each coordinate is a fixed linear combination of four per-candidate terms (centre, drift,
+    and the two columns of ``R diag(a, b)``) with four per-point weights, so both maps are one
+    (N, 4) x (4, K) matrix product: far cheaper than broadcasting over (N, K) term by term, and
+    cheaper still in float32 (the type ``cv2.remap`` wants). The product works relative to the
+    whole pixel nearest each centre, added last, so float32 keeps its ~1e-5 px resolution on
+    the small offsets and rounds only once at the frame's scale.
+    """
+    scale = radii / r0
+    weights = np.stack(
+        [np.ones_like(radii), radii**2 - r0**2, np.cos(params) * scale, -np.sin(params) * scale]
+    ).astype(dtype)  # (4, K)
+    c, s = np.cos(angle), np.sin(angle)
+    a, b = axes[:, 0], axes[:, 1]
+    whole = np.round(centre)
+    frac = centre - whole
+    u = np.column_stack([frac[:, 0], drift[:, 0], c * a, -s * b]).astype(dtype) @ weights
+    v = np.column_stack([frac[:, 1], drift[:, 1], s * a, c * b]).astype(dtype) @ weights
+    u += whole[:, 0:1].astype(dtype)
+    v += whole[:, 1:2].astype(dtype)
+    return u, v
 
 
 def track_points(
@@ -191,77 +226,58 @@ def track_points(
     radii, params : (K,)
         Printed radii and parameters ``t`` of the points.
     """
-    scale = radii / r0
-    ux = np.cos(params) * scale  # (K,)
-    uy = -np.sin(params) * scale
-    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
-    a, b = axes[:, 0:1], axes[:, 1:2]
-    # R diag(a, b) [ux, uy]^T written out: einsum over (N, K) is several times slower.
-    ax_u, ax_v = a * ux, b * uy
-    dr2 = radii**2 - r0**2
-    out = np.empty((len(centre), len(radii), 2))
-    out[..., 0] = centre[:, 0:1] + drift[:, 0:1] * dr2 + c * ax_u - s * ax_v
-    out[..., 1] = centre[:, 1:2] + drift[:, 1:2] * dr2 + s * ax_u + c * ax_v
-    return out
+    return np.stack(_track_maps(centre, axes, angle, r0, drift, radii, params), axis=-1)
 
 
 def _sample(
-    image: NDArray[Any], full_scale: float, pts: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Bilinear samples of ``image`` at ``pts`` (N, K, 2) in fractions of full scale; NaN outside.
+    image: NDArray[Any], u: NDArray[np.float32], v: NDArray[np.float32]
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Bilinear samples of ``image`` at ``(u, v)`` (each (N, K)), and where they left the image.
 
     OpenCV interpolates in the image's own type (an 8-bit image gives 8-bit samples, ample for
-    telling black from white), so the full frame is never converted to float.
+    telling black from white), so the full frame is never converted to float. The samples come
+    back as float32: integer samples and the sums of up to 12 of them stay exact in float32,
+    so the rest of the reader works on exact integers for integer images.
+
+    Returns
+    -------
+    samples : (N, K) float32
+        Samples in the image's units; 0 where the point left the image.
+    outside : (N, K) bool
+        Points outside the image (their samples are not to be used).
     """
-    n, k, _ = pts.shape
-    out = np.empty((n, k), dtype=np.float64)
+    n, k = u.shape
+    out = np.empty((n, k), dtype=np.float32)
     for start in range(0, n, _MAX_REMAP_ROWS):
-        chunk = pts[start : start + _MAX_REMAP_ROWS].astype(np.float32)
+        stop = start + _MAX_REMAP_ROWS
         got = cv2.remap(
             image,
-            np.ascontiguousarray(chunk[..., 0]),
-            np.ascontiguousarray(chunk[..., 1]),
+            u[start:stop],
+            v[start:stop],
             cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=0,
         )
-        out[start : start + len(chunk)] = got
-    out /= full_scale
+        out[start:stop] = got
     h, w = image.shape
-    outside = (pts[..., 0] < 0) | (pts[..., 0] > w - 1) | (pts[..., 1] < 0) | (pts[..., 1] > h - 1)
-    out[outside] = np.nan
-    return out
+    # Whole candidates first: the exact per-point test is needed only near the image border.
+    near = (u.min(axis=1) < 0) | (u.max(axis=1) > w - 1)
+    near |= (v.min(axis=1) < 0) | (v.max(axis=1) > h - 1)
+    outside = np.zeros((n, k), dtype=bool)
+    if near.any():
+        un, vn = u[near], v[near]
+        outside[near] = (un < 0) | (un > w - 1) | (vn < 0) | (vn > h - 1)
+    return out, outside
 
 
-def _sector_values(
-    ring: NDArray[np.float64], mid: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """Sector means at the sector phase that best separates black from white.
+def _median_pair_sum(samples: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Twice the median along axis 1 (the sum of the two middle values; even count).
 
-    The ellipse parameter ``t`` starts at an arbitrary printed angle, so sector boundaries can fall
-    anywhere among the ``_PER_SECTOR`` samples of a sector; each phase is tried and the one whose
-    sectors lie farthest from the mid level (in total) is kept.
-
-    Returns
-    -------
-    values : (N, BITS)
-        Mean of the ``_CORE`` middle samples of each sector, sector 0 starting at sample ``phase``.
-    phase : (N,) int64
+    A full sort of these short rows (vectorised) is several times faster than ``np.partition``.
     """
-    n = ring.shape[0]
-    skip = (_PER_SECTOR - _CORE) // 2
-    best = np.full(n, -np.inf)
-    values = np.zeros((n, BITS))
-    phase = np.zeros(n, dtype=np.int64)
-    for p in range(_PER_SECTOR):
-        rolled = np.roll(ring, -(p + skip), axis=1).reshape(n, BITS, _PER_SECTOR)
-        v = rolled[:, :, :_CORE].mean(axis=2)
-        score = np.abs(v - mid[:, None]).sum(axis=1)
-        better = score > best
-        best = np.where(better, score, best)
-        values[better] = v[better]
-        phase[better] = p
-    return values, phase
+    m = samples.shape[1] // 2
+    ordered = np.sort(samples, axis=1)
+    return np.asarray(ordered[:, m - 1] + ordered[:, m], dtype=np.float32)
 
 
 def _reference_rings(design: FiducialDesign) -> tuple[list[float], list[float]]:
@@ -301,45 +317,72 @@ def read_codes(
     Returns
     -------
     TrackReading
+        The track is read only for candidates that pass rules 1-3 on their reference regions;
+        for the others ``bits`` and ``margin`` are zeros (and ``code``, ``rotation_sector`` and
+        ``rotation`` those of an all-white track), and levels are NaN where their samples left
+        the image.
     """
     cfg = config or ReaderConfig()
     n = len(centre)
     r0 = design.pose_circle.radius
     k = np.zeros((n, 2)) if drift is None else drift
-    width = design.track_outer - design.track_inner
     sector = 2.0 * np.pi / BITS
     n_ang = BITS * _PER_SECTOR
     step = 2.0 * np.pi / n_ang
-    t_all = np.repeat((np.arange(n_ang) + 0.5) * step, len(_RAD))
-    r_all = np.tile(design.track_inner + _RAD * width, n_ang)
+
+    # Rules 1-3 on the reference regions first: they reject most candidates (code sectors,
+    # clutter) from a fifth of the samples, and only the survivors' tracks are sampled.
     black_r, white_r = _reference_rings(design)
     ref_t = (np.arange(_REF_ANGLES) + 0.25) * (2.0 * np.pi / _REF_ANGLES)
-    ref_r = np.concatenate([np.full(_REF_ANGLES, r) for r in (*black_r, *white_r)])
+    ref_r = np.repeat(np.array([*black_r, *white_r]), _REF_ANGLES)
     ref_t_all = np.tile(ref_t, len(black_r) + len(white_r))
-    radii = np.concatenate([r_all, ref_r])
-    params = np.concatenate([t_all, ref_t_all])
-    pts = track_points(centre, axes, angle, r0, k, radii, params)
-    vals = _sample(image, full_scale, pts)
-
-    n_track = r_all.size
-    ring = vals[:, :n_track].reshape(n, n_ang, len(_RAD)).mean(axis=2)  # (N, n_ang)
-    refs = vals[:, n_track:].reshape(n, len(black_r) + len(white_r), _REF_ANGLES)
-    black_s = refs[:, : len(black_r)].reshape(n, -1)
-    white_s = refs[:, len(black_r) :].reshape(n, -1)
-    valid = ~np.isnan(vals).any(axis=1)
-    with np.errstate(invalid="ignore", all="ignore"):
-        black = np.median(black_s, axis=1)
-        white = np.median(white_s, axis=1)
-        contrast = white - black
-        mid = 0.5 * (black + white)
-        track, phase = _sector_values(ring, mid)
-        bits = (track < mid[:, None]).astype(np.uint8)
-        margin = np.abs(track - mid[:, None]) / np.maximum(0.5 * contrast[:, None], 1e-9)
-        black_bad = (black_s > mid[:, None]).mean(axis=1)
-        white_bad = (white_s < mid[:, None]).mean(axis=1)
-    ok = valid & (contrast >= cfg.min_contrast)
+    u, v = _track_maps(centre, axes, angle, r0, k, ref_r, ref_t_all, np.float32)
+    refs, outside = _sample(image, u, v)
+    n_black = len(black_r) * _REF_ANGLES
+    black_s, white_s = refs[:, :n_black], refs[:, n_black:]
+    # Everything below works on sums of samples, exact for integer images: ``ring`` is 3 samples
+    # per angle, a sector value 4 angles (12 samples), the mid level ``q / 4`` with ``q`` the sum
+    # of the two middle black and the two middle white reference samples (medians of an even
+    # count). So "sector darker than mid" is ``sum12 < 3 q``, free of rounding ties.
+    black2 = _median_pair_sum(black_s)
+    white2 = _median_pair_sum(white_s)
+    q = black2 + white2
+    # Levels as fractions of full scale; NaN where a reference sample left the image.
+    black = black2.astype(np.float64) / (2.0 * full_scale)
+    white = white2.astype(np.float64) / (2.0 * full_scale)
+    black[outside[:, :n_black].any(axis=1)] = np.nan
+    white[outside[:, n_black:].any(axis=1)] = np.nan
+    contrast = white - black
+    black_bad = (4.0 * black_s > q[:, None]).mean(axis=1)
+    white_bad = (4.0 * white_s < q[:, None]).mean(axis=1)
+    with np.errstate(invalid="ignore"):
+        ok = contrast >= cfg.min_contrast  # False for NaN levels: rule 1 on the references
     ok &= (black_bad <= cfg.max_ref_outliers) & (white_bad <= cfg.max_ref_outliers)
+
+    # The track, radius-major (all angles of one radius together): the radial sum is then a sum
+    # of contiguous blocks.
+    read = np.nonzero(ok)[0]
+    width = design.track_outer - design.track_inner
+    n_rad = len(_RAD)
+    t_all = np.tile((np.arange(n_ang) + 0.5) * step, n_rad)
+    r_all = np.repeat(design.track_inner + _RAD * width, n_ang)
+    u, v = _track_maps(centre[read], axes[read], angle[read], r0, k[read], r_all, t_all, np.float32)
+    vals, outside = _sample(image, u, v)
+    ok[read] = ~outside.any(axis=1)  # rule 1 on the track
+    ring = vals[:, 0:n_ang].copy()
+    for j in range(1, n_rad):
+        ring += vals[:, j * n_ang : (j + 1) * n_ang]
+    phase = np.zeros(n, dtype=np.int64)
+    diff = np.zeros((n, BITS), dtype=np.float32)
+    phase[read], diff[read] = _sector_phase(ring, 3.0 * q[read])
     consistent = ok.copy()
+    bits = ((diff < 0) & ok[:, None]).astype(np.uint8)
+    phase[~ok] = 0
+    # |sector mean - mid| / (contrast / 2) = |sum12 - 3 q| / (3 (sum white2 - sum black2)), one
+    # correctly rounded division of exact integers (for integer images).
+    den = np.maximum(3.0 * (white2 - black2).astype(np.float64), 12.0 * full_scale * 1e-9)
+    margin = np.abs(diff).astype(np.float64) / den[:, None]
+    margin[~ok] = 0.0
 
     words = (bits.astype(np.int64) << np.arange(BITS)).sum(axis=1)
     t_code, t_rot, t_dist = _decode_table()
@@ -353,7 +396,7 @@ def read_codes(
     weak = margin < cfg.weak_margin
     ok &= ~(wrong & ~weak).any(axis=1)
     ok &= weak.sum(axis=1) <= np.where(dist == 0, cfg.max_weak_bits_exact, cfg.max_weak_bits)
-    nearest = np.where(consistent, _nearest_distance(words, dist), BITS + 1)
+    nearest = np.where(consistent, _distance_table()[words], BITS + 1).astype(np.int64)
     dist = np.where(ok, dist, BITS + 1)
 
     # Boundary between the code's sectors 15 and 0 sits at read index (BITS - rot) % BITS.
@@ -369,8 +412,44 @@ def read_codes(
         rotation_sector=rot,
         hamming=dist,
         bits=bits,
-        margin=np.nan_to_num(margin),
+        margin=margin,
         black=black,
         white=white,
         rotation=rotation,
     )
+
+
+def _sector_phase(
+    ring: NDArray[np.float32], mid3: NDArray[np.float32]
+) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+    """The sector phase that best separates black from white, and the sectors' offsets there.
+
+    The ellipse parameter ``t`` starts at an arbitrary printed angle, so sector boundaries can fall
+    anywhere among the ``_PER_SECTOR`` samples of a sector; each phase is tried and the one whose
+    sectors lie farthest from the mid level (in total) is kept (the first of equals).
+
+    Parameters
+    ----------
+    ring : (N, BITS * _PER_SECTOR) float32
+        Per-angle sums over the track's radii.
+    mid3 : (N,) float32
+        The mid level in units of a sector sum (``_CORE`` angles of ``ring``).
+
+    Returns
+    -------
+    phase : (N,) int64
+        Sector 0 starts at angle ``phase``.
+    diff : (N, BITS) float32
+        Sum of the ``_CORE`` middle angles of each sector minus ``mid3``.
+    """
+    n, n_ang = ring.shape
+    skip = (_PER_SECTOR - _CORE) // 2
+    # Window sums of _CORE consecutive angles starting at every angle + skip (circularly); the
+    # window of sector i at phase p starts at angle i * _PER_SECTOR + p + skip.
+    ext = np.concatenate([ring[:, skip:], ring[:, : skip + _CORE - 1]], axis=1)
+    window = ext[:, 0:n_ang] - mid3[:, None]
+    for j in range(1, _CORE):
+        window += ext[:, j : j + n_ang]
+    diff_all = window.reshape(n, BITS, _PER_SECTOR)  # [candidate, sector, phase]
+    phase = np.abs(diff_all).sum(axis=1).argmax(axis=1)
+    return phase.astype(np.int64), diff_all[np.arange(n), :, phase]

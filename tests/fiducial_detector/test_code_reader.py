@@ -6,7 +6,16 @@ import numpy as np
 import pytest
 
 from armourcam.render import Target, render, rotation_from_slant_tilt
-from fiducial_detector.code_reader import ReaderConfig, _decode_table, read_codes
+from fiducial_detector.code_reader import (
+    _CORE,
+    _PER_SECTOR,
+    ReaderConfig,
+    _decode_table,
+    _distance_table,
+    _sector_phase,
+    read_codes,
+    track_points,
+)
 from fiducial_detector.codebook import BITS, code_count, decode, rotation_table
 from fiducial_detector.design import get_design
 from fiducial_detector.ellipse import ellipse_from_conic
@@ -90,3 +99,93 @@ def test_strict_config_rejects_weak_reads() -> None:
     assert not r.accepted[0]
     ok = read_codes(scene.image, 255.0, get_design("dot"), c, ax, ang)
     assert ok.accepted[0]
+
+
+def test_distance_table_is_the_distance_to_the_nearest_code_rotation() -> None:
+    rng = np.random.default_rng(11)
+    near = (
+        rotation_table()[rng.integers(code_count(), size=50), 0].astype(np.int64) << np.arange(BITS)
+    ).sum(axis=1)
+    flips = (1 << rng.integers(0, BITS, (50, 3))).astype(np.int64)
+    words = np.concatenate(
+        [
+            rng.integers(0, 1 << BITS, 400),
+            [0, (1 << BITS) - 1],
+            near,
+            near ^ flips[:, 0],
+            near ^ flips[:, 0] ^ flips[:, 1],
+            near ^ flips[:, 0] ^ flips[:, 1] ^ flips[:, 2],
+        ]
+    )
+    rotations = (rotation_table().astype(np.int64) << np.arange(BITS)).sum(axis=2).ravel()
+    brute = np.bitwise_count(words[:, None] ^ rotations[None, :]).min(axis=1)
+    assert np.array_equal(_distance_table()[words], brute)
+    assert set(np.unique(brute).tolist()) >= {0, 1, 2, 3}  # the sample spans several distances
+
+
+def test_sector_phase_is_the_best_separating_phase() -> None:
+    """Window sums agree with the direct per-phase means of the paper's sector reading; the phase
+    kept is the one farthest from the mid level (first of equals)."""
+    rng = np.random.default_rng(12)
+    n_ang = BITS * _PER_SECTOR
+    ring = rng.integers(0, 3 * 256, (200, n_ang)).astype(np.float32)
+    mid3 = rng.integers(0, 12 * 256, 200).astype(np.float32)
+    phase, diff = _sector_phase(ring, mid3)
+    skip = (_PER_SECTOR - _CORE) // 2
+    scores = []
+    for p in range(_PER_SECTOR):
+        rolled = np.roll(ring.astype(np.int64), -(p + skip), axis=1).reshape(200, BITS, -1)
+        d = rolled[:, :, :_CORE].sum(axis=2) - mid3[:, None].astype(np.int64)
+        scores.append(np.abs(d).sum(axis=1))
+        at = phase == p
+        assert np.array_equal(diff[at], d[at])
+    assert np.array_equal(phase, np.argmax(np.stack(scores, axis=1), axis=1))
+
+
+@pytest.mark.parametrize("design", ["ring", "dot"])
+def test_image_types_read_alike(design: str) -> None:
+    """8-bit, 16-bit and float images of one scene read the same code and levels."""
+    scene, c, ax, ang = _truth_ellipse(design, 0.9, 45.0, 17)
+    grey = scene.image
+    r8 = read_codes(grey, 255.0, get_design(design), c, ax, ang)
+    r16 = read_codes(grey.astype(np.uint16) * 257, 65535.0, get_design(design), c, ax, ang)
+    rf = read_codes(grey.astype(np.float32) / 255.0, 1.0, get_design(design), c, ax, ang)
+    for r in (r16, rf):
+        assert r.accepted[0] and r.code[0] == r8.code[0] == 17
+        assert np.array_equal(r.bits, r8.bits)
+        assert r.black[0] == pytest.approx(r8.black[0], abs=2e-3)
+        assert r.white[0] == pytest.approx(r8.white[0], abs=2e-3)
+
+
+def test_track_points_follow_the_documented_formula() -> None:
+    rng = np.random.default_rng(13)
+    n, k = 5, 40
+    centre, axes = rng.uniform(50, 3000, (n, 2)), np.sort(rng.uniform(5, 60, (n, 2)))[:, ::-1]
+    angle, drift = rng.uniform(0, np.pi, n), rng.normal(0, 2, (n, 2))
+    radii, params = rng.uniform(0, 1.2, k), rng.uniform(0, 2 * np.pi, k)
+    r0 = 0.8
+    got = track_points(centre, axes, angle, r0, drift, radii, params)
+    for i in range(n):
+        c, s = np.cos(angle[i]), np.sin(angle[i])
+        rot = np.array([[c, -s], [s, c]]) @ np.diag(axes[i])
+        for j in range(k):
+            unit = np.array([np.cos(params[j]), -np.sin(params[j])]) * radii[j] / r0
+            want = centre[i] + drift[i] * (radii[j] ** 2 - r0**2) + rot @ unit
+            assert np.allclose(got[i, j], want, atol=1e-9)
+
+
+def test_only_consistent_candidates_get_their_track_read() -> None:
+    """A candidate failing the reference-region rules is not read: no bits, no margin."""
+    scene, c, ax, ang = _truth_ellipse("ring", 0.2, 30.0, 9)
+    flat_c = np.array([[12.0, 12.0]])  # a corner of plain paper: no contrast
+    both = read_codes(
+        scene.image,
+        255.0,
+        get_design("ring"),
+        np.vstack([c, flat_c]),
+        np.vstack([ax, [[6.0, 5.0]]]),
+        np.concatenate([ang, [0.0]]),
+    )
+    assert both.accepted.tolist() == [True, False]
+    assert not both.consistent[1] and both.nearest[1] == BITS + 1
+    assert not both.bits[1].any() and not both.margin[1].any()

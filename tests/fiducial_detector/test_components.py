@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
-from fiducial_detector.components import outer_boundaries
+from fiducial_detector.components import _on_ellipse, _polygon_moments, outer_boundaries
 
 
 def _ellipse_mask(shape: tuple[int, int], centre, axes, angle_deg, thickness=-1):  # type: ignore[no-untyped-def]
@@ -38,3 +39,54 @@ def test_broken_ring_recovered_by_hull_and_size_limits() -> None:
     speck = np.zeros((20, 20), np.uint8)
     speck[5:7, 5:7] = 255  # boundary far shorter than 10 px
     assert len(outer_boundaries(speck, max_extent=100)) == 0
+
+
+def _random_binary(rng: np.random.Generator, shape: tuple[int, int] = (90, 120)) -> np.ndarray:
+    """Speckle, lines, filled and hollow ellipses: every kind of boundary the tracer meets."""
+    img = (rng.random(shape) < 0.03).astype(np.uint8) * 255
+    for _ in range(6):
+        c = (int(rng.integers(10, shape[1] - 10)), int(rng.integers(10, shape[0] - 10)))
+        ax = (int(rng.integers(2, 25)), int(rng.integers(1, 15)))
+        cv2.ellipse(
+            img, c, ax, float(rng.uniform(0, 180)), 0, 360, 255, int(rng.choice([-1, 1, 2]))
+        )
+    p, q = rng.integers(0, min(shape), (2, 2))
+    cv2.line(img, (int(p[0]), int(p[1])), (int(q[0]), int(q[1])), 255, 1)
+    return img
+
+
+def test_vectorised_moments_equal_opencv_bit_for_bit() -> None:
+    """Green's theorem over compressed chains gives cv2.moments of the full chains exactly, and
+    the chain length (unit steps) equals the full chain's point count."""
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        img = _random_binary(rng)
+        full, _ = cv2.findContours(img, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+        compressed, _ = cv2.findContours(img, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+        rows, length = _polygon_moments(list(compressed))
+        for c, row, n in zip(full, rows, length, strict=True):
+            m = cv2.moments(c)
+            assert tuple(row) == (m["m00"], m["m10"], m["m01"], m["mu20"], m["mu11"], m["mu02"])
+            assert n == len(c)
+
+
+def test_on_ellipse_counts_every_pixel_of_compressed_runs() -> None:
+    """The hull retry's point test sees the same pixels from compressed chains as from full ones."""
+    rng = np.random.default_rng(8)
+    img = _random_binary(rng, (120, 160))
+    full, _ = cv2.findContours(img, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    compressed, _ = cv2.findContours(img, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    rows = np.zeros((len(full), 7))
+    for i, c in enumerate(full):
+        pts = c.reshape(-1, 2).astype(float)
+        rows[i, :2] = pts.mean(axis=0)
+        rows[i, 2:4] = (pts.std(axis=0).max() * 1.5 + 1.0, pts.std(axis=0).min() * 1.5 + 1.0)
+        rows[i, 4] = rng.uniform(0, np.pi)
+    got = _on_ellipse(list(compressed), rows)
+    for c, row, frac in zip(full, rows, got, strict=True):
+        d = c.reshape(-1, 2) - row[:2]
+        co, si = np.cos(row[4]), np.sin(row[4])
+        rho = np.hypot(
+            (d[:, 0] * co + d[:, 1] * si) / row[2], (d[:, 1] * co - d[:, 0] * si) / row[3]
+        )
+        assert frac == pytest.approx(np.mean((rho > 0.55) & (rho < 1.12)), abs=1e-12)
