@@ -57,6 +57,8 @@ _MIN_SPREAD_PX, _MAX_SPREAD_PX = 0.25, 4.0
 _MAX_STEP_PX = 1.0
 #: A fit whose last step moved its edges less than this (pixels) has converged.
 _CONVERGED_PX = 1e-3
+#: Iterations on every other pixel before the full band is used.
+_COARSE_ITERATIONS = 3
 _MIN_PIXELS = 16
 #: Largest curvature times spread where the shifted-step model holds (first order in it).
 _MAX_CURVATURE_SPREAD = 0.35
@@ -381,8 +383,17 @@ def _gauss_newton(
         if it == 0:
             model.init_levels(theta, du0, dv0, intensity, valid, polarity)
         tie_rows = None if tie is None else (tie[0][rows], tie[1][rows])
+        # The first steps, from a seed a pixel off, need only every other pixel; the last ones
+        # (and the covariance) use them all.
+        coarse = it < iterations - 1 and it < _COARSE_ITERATIONS
+        px = slice(None, None, 2) if coarse else slice(None)
         nrm, rhs, cnt, chi_rows = model.normal_equations(
-            theta[rows], du0[rows], dv0[rows], intensity[rows], valid[rows], tie_rows
+            theta[rows],
+            du0[rows, px],
+            dv0[rows, px],
+            intensity[rows, px],
+            valid[rows, px],
+            tie_rows,
         )
         normal[rows], count[rows], chi[rows] = nrm, cnt, chi_rows
         if it == iterations:
@@ -414,7 +425,7 @@ def _gauss_newton(
         step[:, isp] = np.clip(step[:, isp], -0.5 * sp, 0.5 * sp)
         theta[rows] += step
         theta[rows, isp] = np.clip(theta[rows, isp], _MIN_SPREAD_PX, _MAX_SPREAD_PX)
-        moving = ok[rows] & (shift > _CONVERGED_PX)
+        moving = ok[rows] & ((shift > _CONVERGED_PX) | coarse)
         rows = rows[moving]
         if rows.size == 0:
             break
