@@ -469,9 +469,7 @@ def _fit_edge_model(
     else:
         pose = _refine_circle(grey, noise, design, 0, seeds)
         second = [None] * len(pose)
-    failed = [
-        j for j, e in enumerate(pose) if e is None or not _plausible(e, _as_ellipse(seeds[j]))
-    ]
+    failed = [j for j, e in enumerate(pose) if e is None or not _plausible(e, seeds[j])]
     if failed:
         fallback = fit_ellipses(
             grey,
@@ -481,7 +479,7 @@ def _fit_edge_model(
             dark_inside=design.pose_circle.dark_inside,
         )
         for j, e in zip(failed, fallback, strict=True):
-            pose[j] = e if e is not None and _plausible(e, _as_ellipse(seeds[j])) else None
+            pose[j] = e if e is not None and _plausible(e, seeds[j]) else None
             second[j] = None
     groups: list[list[Ellipse]] = [[e] if e is not None else [] for e in pose]
     for j, e in enumerate(second):
@@ -497,7 +495,7 @@ def _fit_edge_model(
         inner[:, 2:4] *= design.circles[k].radius / r0
         fits = _refine_circle(grey, noise, design, k, inner)
         for j, e, s in zip(found, fits, inner, strict=True):
-            if e is not None and _plausible(e, _as_ellipse(s)):
+            if e is not None and _plausible(e, s):
                 groups[j].append(e)
     return [tuple(g) for g in groups]
 
@@ -527,7 +525,7 @@ def _refine_annulus(
     )
     pose = _ellipses(fo, c_out.radius)
     second = [
-        e if e is not None and _plausible(e, _as_ellipse(s)) else None
+        e if e is not None and _plausible(e, s) else None
         for e, s in zip(_ellipses(fi, c_in.radius), inner_seeds, strict=True)
     ]
     return pose, second
@@ -574,10 +572,12 @@ def _ellipses(fits: EdgeFits, radius: float) -> list[Ellipse | None]:
 
 
 def _parameters(e: Ellipse) -> tuple[float, float, float, float, float]:
+    """``(u, v, a, b, angle)`` of an ellipse."""
     return (e.center_px[0], e.center_px[1], e.semi_major, e.semi_minor, e.angle)
 
 
 def _as_ellipse(p: NDArray[Any]) -> Ellipse:
+    """A seed ``(u, v, a, b, angle)`` as the Ellipse the dual-conic fit takes."""
     return Ellipse(
         center_px=(float(p[0]), float(p[1])),
         semi_major=float(p[2]),
@@ -591,25 +591,20 @@ def _as_ellipse(p: NDArray[Any]) -> Ellipse:
 def _scaled_seed(cands: _Candidates, i: int, scale: float, dr2: float) -> Ellipse:
     """The candidate's coarse pose ellipse scaled to a concentric circle, with centre drift."""
     c = cands.centre[i] + cands.drift[i] * dr2
-    return Ellipse(
-        center_px=(float(c[0]), float(c[1])),
-        semi_major=float(cands.axes[i, 0] * scale),
-        semi_minor=float(cands.axes[i, 1] * scale),
-        angle=float(cands.angle[i]),
-        covariance=np.zeros((5, 5)),
-        radius=0.0,
-    )
+    return _as_ellipse(np.r_[c, cands.axes[i] * scale, cands.angle[i]])
 
 
-def _plausible(fit: Ellipse, seed: Ellipse) -> bool:
-    """A fit that stayed near its seed (conservative thresholds on ellipse properties, step 3)."""
-    tol = 0.25 * seed.semi_minor + 1.5
-    du = fit.center_px[0] - seed.center_px[0]
-    dv = fit.center_px[1] - seed.center_px[1]
+def _plausible(fit: Ellipse, seed: Ellipse | NDArray[Any]) -> bool:
+    """A fit that stayed near its seed (conservative thresholds on ellipse properties, step 3).
+
+    ``seed`` is an :class:`Ellipse` or its ``(u, v, a, b, angle)`` row.
+    """
+    u, v, a, b, _ = _parameters(seed) if isinstance(seed, Ellipse) else seed
+    tol = 0.25 * b + 1.5
     return bool(
-        np.hypot(du, dv) < tol
-        and abs(fit.semi_major - seed.semi_major) < tol
-        and abs(fit.semi_minor - seed.semi_minor) < tol
+        np.hypot(fit.center_px[0] - u, fit.center_px[1] - v) < tol
+        and abs(fit.semi_major - a) < tol
+        and abs(fit.semi_minor - b) < tol
     )
 
 

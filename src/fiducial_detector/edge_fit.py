@@ -34,6 +34,7 @@ Pixel convention: ``(u, v)`` = (x, y) = (column, row), pixel centres at integer 
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -372,7 +373,7 @@ def _gauss_newton(
     gap_in, gap_out = f32(2.0 * (1.0 - lo)), f32(2.0 * (hi - 1.0))
     band32 = f32(band)
     scale = 0.5 * seeds[:, 0, 2]  # edge shift per unit relative change of Q, pixels (about)
-    tie = _tie(seeds, npar, tie_px, sigma) if n_edges == 2 and tie_px > 0 else None
+    tie = _Tie.build(seeds, npar, tie_px, sigma) if n_edges == 2 and tie_px > 0 else None
     normal = np.zeros((k, npar, npar))
     count = np.zeros(k, dtype=np.intp)
     chi = np.full(k, np.nan)
@@ -380,21 +381,22 @@ def _gauss_newton(
     # Fits that have converged leave the batch: later iterations cost only what still moves.
     rows = np.arange(k)
     for it in range(iterations + 1):
-        if it == 0:
-            model.init_levels(theta, du0, dv0, intensity, valid, polarity)
-        tie_rows = None if tie is None else (tie[0][rows], tie[1][rows])
         # The first steps, from a seed a pixel off, need only every other pixel; the last ones
         # (and the covariance) use them all.
         coarse = it < iterations - 1 and it < _COARSE_ITERATIONS
         px = slice(None, None, 2) if coarse else slice(None)
+        theta_rows = theta[rows]
         nrm, rhs, cnt, chi_rows = model.normal_equations(
-            theta[rows],
+            theta_rows,
             du0[rows, px],
             dv0[rows, px],
             intensity[rows, px],
             valid[rows, px],
-            tie_rows,
+            None if tie is None else tie.rows(rows),
+            levels_polarity=polarity[rows] if it == 0 else None,
         )
+        if it == 0:
+            theta[rows] = theta_rows  # with the levels the first evaluation started from
         normal[rows], count[rows], chi[rows] = nrm, cnt, chi_rows
         if it == iterations:
             break
@@ -466,13 +468,11 @@ class _EdgeModel:
         gaps: tuple[np.float32, np.float32],
         sigma: float,
     ) -> None:
-        self.signs, self.band, self.rho_limits, self.gaps, self.sigma = (
-            signs,
-            band,
-            rho_limits,
-            gaps,
-            sigma,
-        )
+        self.signs = signs
+        self.band = band
+        self.rho_limits = rho_limits
+        self.gaps = gaps
+        self.sigma = sigma
         self.n_edges = len(signs)
         self.npar = 5 * self.n_edges + 3
 
@@ -525,21 +525,6 @@ class _EdgeModel:
             gauss_l.append(gauss)
         return geos, mask, step_sum, gauss_l, s
 
-    def init_levels(
-        self,
-        theta: NDArray[np.float64],
-        du0: NDArray[np.float32],
-        dv0: NDArray[np.float32],
-        intensity: NDArray[np.float32],
-        valid: NDArray[np.bool_],
-        polarity: NDArray[np.float64],
-    ) -> None:
-        """Mid level and half contrast by linear least squares at the seed geometry (in place)."""
-        im, ih = self.npar - 3, self.npar - 2
-        _, mask, step_sum, _, _ = self._terms(theta, du0, dv0, valid)
-        theta[:, im], theta[:, ih] = _levels(intensity, step_sum, mask)
-        theta[:, ih] = np.where(theta[:, ih] * polarity > 0, theta[:, ih], polarity * 1e-3)
-
     def normal_equations(
         self,
         theta: NDArray[np.float64],
@@ -547,13 +532,23 @@ class _EdgeModel:
         dv0: NDArray[np.float32],
         intensity: NDArray[np.float32],
         valid: NDArray[np.bool_],
-        tie: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+        tie: _Tie | None,
+        *,
+        levels_polarity: NDArray[np.float64] | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]]:
-        """``J^T J``, ``J^T r``, the pixel count and chi at ``theta`` (rows of the block)."""
+        """``J^T J``, ``J^T r``, the pixel count and chi at ``theta`` (rows of the block).
+
+        With ``levels_polarity`` (the first evaluation, at the seeds) the mid level and half
+        contrast are first set in ``theta``, in place, by linear least squares at its geometry.
+        """
         f32 = np.float32
         npar = self.npar
         im, ih, isp = npar - 3, npar - 2, npar - 1
         geos, mask, step_sum, gauss_l, s = self._terms(theta, du0, dv0, valid)
+        if levels_polarity is not None:
+            theta[:, im], theta[:, ih] = _levels(intensity, step_sum, mask)
+            keep = theta[:, ih] * levels_polarity > 0
+            theta[:, ih] = np.where(keep, theta[:, ih], levels_polarity * 1e-3)
         k = theta.shape[0]
         h = theta[:, ih : ih + 1].astype(np.float32)
         resid = intensity - (theta[:, im : im + 1].astype(np.float32) + h * step_sum)
@@ -574,44 +569,51 @@ class _EdgeModel:
         normal = (jac @ np.swapaxes(jac, 1, 2)).astype(np.float64)
         rhs = (jac @ resid[:, :, None])[:, :, 0].astype(np.float64)
         if tie is not None:
-            # The prior on inner - ratio * outer, as extra residuals (in noise units).
-            jt, ratio = tie
-            diff = theta[:, 5:10].copy()
-            diff[:, :2] -= theta[:, :2]
-            diff[:, 2:] -= theta[:, 2:5] / ratio[:, None] ** 2
-            normal += jt @ np.swapaxes(jt, 1, 2)
-            rhs -= _tie_rhs(jt, diff)
+            normal += tie.normal
+            rhs -= tie.gradient(theta)
         count = mask.sum(axis=1)
         chi = np.sqrt(np.einsum("kl,kl->k", resid, resid) / np.maximum(count - npar, 1))
         return normal, rhs, count.astype(np.intp), chi / self.sigma
 
 
-def _tie(
-    seeds: NDArray[np.float64], npar: int, tie_px: float, sigma: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Prior tying the inner edge to the scaled outer one: ``J^T`` of its whitened residuals
-    ``r = (inner - T outer) / sd`` with respect to all parameters, ``(k, npar, 5)``, and the size
-    ratio. Whitened in units of the noise so it adds to the intensity normal equations."""
-    k = seeds.shape[0]
-    ratio = seeds[:, 1, 2] / seeds[:, 0, 2]
-    q_in = _quadratic_form(seeds[:, 1, 2:5])
-    a_in = seeds[:, 1, 2]
-    # Edge shift of a form entry's change: dA/A * a / 2 pixels, so sd(A) = 2 tie A / a.
-    sd = np.empty((k, 5))
-    sd[:, :2] = tie_px
-    sd[:, 2:] = 2.0 * tie_px * (np.abs(q_in[:, [0, 0, 2]]) + 1e-12) / a_in[:, None]
-    w = sigma / sd  # residual r * sigma, so that it adds to J^T J of intensities
-    jt = np.zeros((k, npar, 5))
-    for i in range(5):
-        jt[:, 5 + i, i] = w[:, i]
-        jt[:, i, i] = -w[:, i] * (1.0 if i < 2 else 1.0 / ratio**2)
-    return jt, ratio
+@dataclass(frozen=True, slots=True, eq=False)
+class _Tie:
+    """Prior tying an annulus' inner edge to its outer one scaled by ``ratio``: whitened residuals
+    ``r = w (inner - T outer)`` (``w`` = noise sd / prior sd, so they add to the intensity normal
+    equations), their ``J^T`` over all parameters ``(k, npar, 5)`` and the constant ``J^T J``."""
 
+    jt: NDArray[np.float64]
+    w: NDArray[np.float64]
+    ratio: NDArray[np.float64]
+    normal: NDArray[np.float64]
 
-def _tie_rhs(jt: NDArray[np.float64], diff: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``J^T r`` of the prior residuals ``r = w * diff`` (``jt`` holds ``w`` on the inner rows)."""
-    w = np.einsum("kii->ki", jt[:, 5:10, :])
-    return np.asarray((jt @ (w * diff)[:, :, None])[:, :, 0], dtype=np.float64)
+    @classmethod
+    def build(cls, seeds: NDArray[np.float64], npar: int, tie_px: float, sigma: float) -> _Tie:
+        k = seeds.shape[0]
+        ratio = seeds[:, 1, 2] / seeds[:, 0, 2]
+        q_in = _quadratic_form(seeds[:, 1, 2:5])
+        a_in = seeds[:, 1, 2]
+        # Edge shift of a form entry's change: dA/A * a / 2 pixels, so sd(A) = 2 tie A / a.
+        sd = np.empty((k, 5))
+        sd[:, :2] = tie_px
+        sd[:, 2:] = 2.0 * tie_px * (np.abs(q_in[:, [0, 0, 2]]) + 1e-12) / a_in[:, None]
+        w = sigma / sd
+        jt = np.zeros((k, npar, 5))
+        for i in range(5):
+            jt[:, 5 + i, i] = w[:, i]
+            jt[:, i, i] = -w[:, i] * (1.0 if i < 2 else 1.0 / ratio**2)
+        return cls(jt, w, ratio, jt @ np.swapaxes(jt, 1, 2))
+
+    def rows(self, rows: NDArray[np.intp]) -> _Tie:
+        """The prior of some fits of the block."""
+        return _Tie(self.jt[rows], self.w[rows], self.ratio[rows], self.normal[rows])
+
+    def gradient(self, theta: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``J^T r`` at ``theta``."""
+        diff = theta[:, 5:10].copy()
+        diff[:, :2] -= theta[:, :2]
+        diff[:, 2:] -= theta[:, 2:5] / self.ratio[:, None] ** 2
+        return np.asarray((self.jt @ (self.w * diff)[:, :, None])[:, :, 0], dtype=np.float64)
 
 
 def _quadratic_form(axes: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -732,24 +734,26 @@ def _levels(
 
 def _safe_solve(A: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     """Batched ``solve(A, b)`` for ``(k, n, n)`` and ``(k, n)``; NaN rows where singular."""
-    try:
-        return np.asarray(np.linalg.solve(A, b[:, :, None])[:, :, 0], dtype=np.float64)
-    except np.linalg.LinAlgError:
-        pass
-    out = np.full(b.shape, np.nan)
-    for i in range(A.shape[0]):
-        with contextlib.suppress(np.linalg.LinAlgError):
-            out[i] = np.linalg.solve(A[i], b[i])
-    return out
+    return _per_matrix(lambda m, v: np.linalg.solve(m, v[..., None])[..., 0], b.shape, A, b)
 
 
 def _safe_inverse(A: NDArray[np.float64]) -> NDArray[np.float64]:
     """Batched inverse; NaN matrices where singular."""
+    return _per_matrix(np.linalg.inv, A.shape, A)
+
+
+def _per_matrix(
+    op: Callable[..., NDArray[Any]],
+    shape: tuple[int, ...],
+    *args: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """``op`` on whole batches, or item by item (NaN where singular) when a batch is singular."""
     try:
-        return np.asarray(np.linalg.inv(A), dtype=np.float64)
+        return np.asarray(op(*args), dtype=np.float64)
     except np.linalg.LinAlgError:
-        out = np.full(A.shape, np.nan)
-        for i in range(A.shape[0]):
-            with contextlib.suppress(np.linalg.LinAlgError):
-                out[i] = np.linalg.inv(A[i])
-        return out
+        pass
+    out = np.full(shape, np.nan)
+    for i in range(shape[0]):
+        with contextlib.suppress(np.linalg.LinAlgError):
+            out[i] = op(*(x[i] for x in args))
+    return out
