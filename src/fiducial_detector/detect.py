@@ -37,6 +37,7 @@ from .design import DESIGNS, DOT, RING, FiducialDesign
 from .edge_fit import EdgeFits, refine_annuli, refine_ellipses
 from .ellipse import estimate_noise, fit_ellipses
 from .errors import DetectorError
+from .profile_fit import line_counts, refine_by_profiles_f32
 from .threshold import DEFAULT_T, bradley_threshold
 from .types import Ellipse, FiducialDetection
 
@@ -68,6 +69,17 @@ EDGE_BAND_PX = 2.0
 #: matches and 2 still fiducials moved > 2 mm against 1 and 0 for the dual conic, although its
 #: absolute depth was better (median z error -0.14 mm against -1.04 mm).
 EDGE_MODEL_MIN_RADIUS_PX = 20.0
+#: Sub-pixel ellipse methods of step 4: ``profile`` (edge profiles along the normals,
+#: :mod:`.profile_fit`: fast) and ``ml`` (the maximum-likelihood blurred-edge model of
+#: :mod:`.edge_fit`: slower, at the Cramer-Rao bound).
+SubpixelMethod = Literal["profile", "ml"]
+SUBPIXEL_METHODS: tuple[str, ...] = ("profile", "ml")
+#: Fraction of a pose circle's profile lines that must find its edge; below it the fiducial is
+#: fitted by the ``ml`` method instead.
+PROFILE_MIN_COVERAGE = 0.5
+#: Largest curvature (1/px) at a pose ellipse's tips for the ``profile`` method: beyond it (a
+#: 60 px ``dot`` fiducial past about 60 deg of slant) the fiducial gets the ``ml`` fit.
+PROFILE_MAX_TIP_CURVATURE = 0.4
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,6 +92,7 @@ class DetectorConfig:
     min_diameter_px: float = MIN_OUTER_DIAMETER_PX
     max_diameter_px: float | None = None
     reader: ReaderConfig = field(default_factory=ReaderConfig)
+    subpixel: SubpixelMethod = "profile"
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -103,6 +116,7 @@ def detect(
     max_diameter_px: float | None = None,
     max_hamming: int = 1,
     min_contrast: float = DEFAULT_MIN_CONTRAST,
+    subpixel: SubpixelMethod = "profile",
 ) -> list[FiducialDetection]:
     """Find armourcam fiducials in an image.
 
@@ -123,6 +137,9 @@ def detect(
         Largest accepted Hamming distance to a code.
     min_contrast : float
         Smallest accepted white-minus-black contrast, fraction of full scale.
+    subpixel : {"profile", "ml"}
+        Sub-pixel ellipse method (see :func:`fit_design_circles`): ``profile`` is several times
+        faster, ``ml`` reaches the Cramer-Rao bound (about half the centre std).
 
     Returns
     -------
@@ -143,6 +160,8 @@ def detect(
         raise DetectorError(f"min_contrast must be in (0, 1), got {min_contrast}")
     if not min_diameter_px > 0:
         raise DetectorError(f"min_diameter_px must be > 0, got {min_diameter_px}")
+    if subpixel not in SUBPIXEL_METHODS:
+        raise DetectorError(f"subpixel must be one of {SUBPIXEL_METHODS}, got {subpixel!r}")
     config = DetectorConfig(
         design=design,
         threshold_window=threshold_window,
@@ -150,6 +169,7 @@ def detect(
         min_diameter_px=float(min_diameter_px),
         max_diameter_px=max_diameter_px,
         reader=ReaderConfig(min_contrast=min_contrast, max_hamming=max_hamming),
+        subpixel=subpixel,
     )
     grey, full_scale = to_grey(image)
     return detect_grey(grey, full_scale, config)
@@ -227,7 +247,7 @@ def detect_grey(
     designs = (RING, DOT) if config.design == "any" else (DESIGNS[config.design],)
     for design in designs:
         cands = _candidates(bounds, design, config.min_diameter_px, max_d)
-        found += _finish(grey, full_scale, _outside(cands, found), config.reader)
+        found += _finish(grey, full_scale, _outside(cands, found), config.reader, config.subpixel)
     found = _deduplicate(found)
     found.sort(key=lambda d: (d.center_px[1], d.center_px[0]))
     return found
@@ -283,6 +303,7 @@ def _finish(
     full_scale: float,
     cands: _Candidates,
     reader: ReaderConfig,
+    subpixel: SubpixelMethod = "profile",
 ) -> list[FiducialDetection]:
     """Read codes, fit every circle of the accepted candidates, read again, build results."""
     if len(cands.centre) == 0:
@@ -328,7 +349,7 @@ def _finish(
     idx = np.nonzero(first.accepted)[0]
     if idx.size == 0:
         return []
-    fitted_all = _fit_circles(grey, noise, cands, idx)
+    fitted_all = _fit_circles(grey, noise, cands, idx, subpixel)
     keep: list[int] = []
     fitted: list[tuple[Ellipse, ...]] = []
     for i, group in zip(idx.tolist(), fitted_all, strict=True):
@@ -363,15 +384,24 @@ def _finish(
 
 
 def _fit_circles(
-    grey: NDArray[np.generic], noise: float, cands: _Candidates, idx: NDArray[np.intp]
+    grey: NDArray[np.generic],
+    noise: float,
+    cands: _Candidates,
+    idx: NDArray[np.intp],
+    subpixel: SubpixelMethod,
 ) -> list[tuple[Ellipse, ...]]:
     """:func:`fit_design_circles` for candidates ``idx``."""
     seeds = np.column_stack([cands.centre[idx], cands.axes[idx], cands.angle[idx]])
-    return fit_design_circles(grey, seeds, cands.design, noise)
+    return fit_design_circles(grey, seeds, cands.design, noise, method=subpixel)
 
 
 def fit_design_circles(
-    grey: NDArray[np.generic], seeds: NDArray[Any], design: FiducialDesign, noise_std: float
+    grey: NDArray[np.generic],
+    seeds: NDArray[Any],
+    design: FiducialDesign,
+    noise_std: float,
+    *,
+    method: SubpixelMethod = "profile",
 ) -> list[tuple[Ellipse, ...]]:
     """Sub-pixel ellipses of every printed circle of fiducials of one design (step 3, then better).
 
@@ -385,6 +415,10 @@ def fit_design_circles(
     design : FiducialDesign
     noise_std : float
         Image noise standard deviation in ``grey``'s units.
+    method : {"profile", "ml"}
+        ``profile``: every circle from edge profiles along its normals (:mod:`.profile_fit`),
+        the pose circle first, the others seeded from it scaled and given its measured blur.
+        ``ml``: as below.
 
     Returns
     -------
@@ -394,8 +428,8 @@ def fit_design_circles(
 
     Notes
     -----
-    Fiducials of at least :data:`EDGE_MODEL_MIN_RADIUS_PX` outer radius have every edge fitted
-    by the maximum-likelihood blurred-edge model (:mod:`.edge_fit`:
+    With ``method="ml"``, fiducials of at least :data:`EDGE_MODEL_MIN_RADIUS_PX` outer radius
+    have every edge fitted by the maximum-likelihood blurred-edge model (:mod:`.edge_fit`:
     unbiased, at its Cramér-Rao bound), with a band that stops half-way to the design's
     neighbouring printed edges. The ``ring`` design's annulus (circles 0 and 1) is fitted as one
     two-edge model; the remaining circles are seeded from the fitted pose circle, scaled. A pose
@@ -404,18 +438,120 @@ def fit_design_circles(
     get the dual-conic fit for every circle.
     """
     seeds = np.asarray(seeds, dtype=np.float64).reshape(-1, 5)
+    if method not in SUBPIXEL_METHODS:
+        raise DetectorError(f"method must be one of {SUBPIXEL_METHODS}, got {method!r}")
+    if method == "ml" or len(seeds) == 0:
+        return _fit_ml(grey, seeds, design, noise_std)
+    src = np.asarray(grey, dtype=np.float32)
+    first = _profile_circle(src, design, 0, seeds, None)
+    # Where most of the pose circle's lines found no clean edge (a small oblique dot whose
+    # windows the code track cuts short), the profiles say too little: the model fit instead.
+    weak = ~first.ok | (first.pixels < PROFILE_MIN_COVERAGE * line_counts(seeds))
+    # Ellipses whose tips bend within the blur (curvature a / b^2) break the profiles'
+    # first-order curvature correction there.
+    weak |= seeds[:, 2] / np.maximum(seeds[:, 3], 1e-9) ** 2 > PROFILE_MAX_TIP_CURVATURE
+    out: list[tuple[Ellipse, ...]] = [()] * len(seeds)
+    strong = np.flatnonzero(~weak)
+    groups = _fit_profiles(grey, src, seeds[strong], design, noise_std, first, strong)
+    for j, g in zip(strong, groups, strict=True):
+        out[j] = g
+        # Without a concentric circle the pose is ambiguous: the model fit, which fits the
+        # ring design's annulus as one, finds more.
+        weak[j] = len(g) == 1 and len(design.circles) > 1
+    slow = np.flatnonzero(weak)
+    for j, g in zip(slow, _fit_ml(grey, seeds[slow], design, noise_std), strict=True):
+        out[j] = g
+    return out
+
+
+def _fit_ml(
+    grey: NDArray[np.generic], seeds: NDArray[Any], design: FiducialDesign, noise: float
+) -> list[tuple[Ellipse, ...]]:
+    """:func:`fit_design_circles` by the edge model (dual conic below its smallest size)."""
     r0 = design.pose_circle.radius
     small = seeds[:, 2] < EDGE_MODEL_MIN_RADIUS_PX * r0
-    if np.any(small):
-        out: list[tuple[Ellipse, ...]] = [()] * len(seeds)
-        big = np.flatnonzero(~small)
-        for j, g in zip(big, _fit_edge_model(grey, seeds[big], design, noise_std), strict=True):
-            out[j] = g
-        tiny = np.flatnonzero(small)
-        for j, g in zip(tiny, _fit_dual_conic(grey, seeds[tiny], design, noise_std), strict=True):
-            out[j] = g
-        return out
-    return _fit_edge_model(grey, seeds, design, noise_std)
+    out: list[tuple[Ellipse, ...]] = [()] * len(seeds)
+    big = np.flatnonzero(~small)
+    for j, g in zip(big, _fit_edge_model(grey, seeds[big], design, noise), strict=True):
+        out[j] = g
+    tiny = np.flatnonzero(small)
+    for j, g in zip(tiny, _fit_dual_conic(grey, seeds[tiny], design, noise), strict=True):
+        out[j] = g
+    return out
+
+
+def _fit_profiles(
+    grey: NDArray[np.generic],
+    src: NDArray[np.float32],
+    seeds: NDArray[Any],
+    design: FiducialDesign,
+    noise: float,
+    first: EdgeFits,
+    rows: NDArray[np.intp],
+) -> list[tuple[Ellipse, ...]]:
+    """:func:`fit_design_circles` by edge profiles, given the pose circles' fits ``first``
+    (rows ``rows`` of it belong to ``seeds``)."""
+    if len(seeds) == 0:
+        return []
+    r0 = design.pose_circle.radius
+    fitted = _ellipses(first, r0)
+    pose = _with_fallback(grey, seeds, design, noise, [fitted[j] for j in rows])
+    groups: list[list[Ellipse]] = [[e] if e is not None else [] for e in pose]
+    found = [j for j, e in enumerate(pose) if e is not None]
+    if not found or len(design.circles) < 2:
+        return [tuple(g) for g in groups]
+    base = np.array([_parameters(pose[j]) for j in found])  # type: ignore[arg-type]
+    blur = first.spread[rows[found]]
+    for k in range(1, len(design.circles)):
+        inner = base.copy()
+        inner[:, 2:4] *= design.circles[k].radius / r0
+        fits = _ellipses(_profile_circle(src, design, k, inner, blur), design.circles[k].radius)
+        for j, e, s in zip(found, fits, inner, strict=True):
+            if e is not None and _plausible(e, s):
+                groups[j].append(e)
+    return [tuple(g) for g in groups]
+
+
+def _profile_circle(
+    src: NDArray[np.float32],
+    design: FiducialDesign,
+    k: int,
+    seeds: NDArray[Any],
+    blur: NDArray[np.float64] | None,
+) -> EdgeFits:
+    """Edge-profile fits of circle ``k`` of ``design`` from ``(n, 5)`` seeds."""
+    circle = design.circles[k]
+    inner, outer = design.neighbour_edges(circle.radius)
+    r = circle.radius
+    polarity = np.full(len(seeds), 1.0 if circle.dark_inside else -1.0)
+    rho = (1.0 - 0.5 * (r - inner) / r, 1.0 + 0.5 * (outer - r) / r)
+    # Circles seeded from the fitted pose circle (blur known) are near: one pass, rarely two.
+    passes = 4 if blur is None else 2
+    return refine_by_profiles_f32(src, seeds, polarity, rho, passes=passes, spread=blur)
+
+
+def _with_fallback(
+    grey: NDArray[np.generic],
+    seeds: NDArray[Any],
+    design: FiducialDesign,
+    noise: float,
+    pose: list[Ellipse | None],
+) -> list[Ellipse | None]:
+    """Pose ellipses, with the gradient dual-conic fit where a fit failed or strayed from its
+    seed (a seed too far off)."""
+    pose = list(pose)
+    failed = [j for j, e in enumerate(pose) if e is None or not _plausible(e, seeds[j])]
+    if failed:
+        fallback = fit_ellipses(
+            grey,
+            [_as_ellipse(seeds[j]) for j in failed],
+            design.pose_circle.radius,
+            noise_std=noise,
+            dark_inside=design.pose_circle.dark_inside,
+        )
+        for j, e in zip(failed, fallback, strict=True):
+            pose[j] = e if e is not None and _plausible(e, seeds[j]) else None
+    return pose
 
 
 def _fit_dual_conic(
@@ -469,18 +605,10 @@ def _fit_edge_model(
     else:
         pose = _refine_circle(grey, noise, design, 0, seeds)
         second = [None] * len(pose)
-    failed = [j for j, e in enumerate(pose) if e is None or not _plausible(e, seeds[j])]
-    if failed:
-        fallback = fit_ellipses(
-            grey,
-            [_as_ellipse(seeds[j]) for j in failed],
-            r0,
-            noise_std=noise,
-            dark_inside=design.pose_circle.dark_inside,
-        )
-        for j, e in zip(failed, fallback, strict=True):
-            pose[j] = e if e is not None and _plausible(e, seeds[j]) else None
-            second[j] = None
+    kept = pose
+    pose = _with_fallback(grey, seeds, design, noise, pose)
+    # An annulus' inner edge goes with the outer edge it was fitted with.
+    second = [e if p is q else None for e, p, q in zip(second, pose, kept, strict=True)]
     groups: list[list[Ellipse]] = [[e] if e is not None else [] for e in pose]
     for j, e in enumerate(second):
         if e is not None and groups[j]:

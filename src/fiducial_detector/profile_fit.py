@@ -1,0 +1,478 @@
+"""Sub-pixel ellipses from edge profiles sampled along the normals (paper step 3, fast form).
+
+Each edge is sampled along short lines normal to its current ellipse, about one line per pixel of
+arc, by bilinear interpolation (``cv2.remap``, one call for every edge of every fiducial). Along
+each line the edge's position is the centroid of the intensity derivative, which telescopes to
+the area (zeroth-moment) edge locator: unbiased for any symmetric blur whose tails the window
+holds, linear in the noise, and independent of the sampling step once the step is below about
+twice the blur. A blurred curved edge's centroid lies ``kappa s^2 / 2`` inside the true edge
+(heat-equation argument: the blur takes ``s^2 / 2R`` of the step's area out of a radial line),
+with ``s^2`` the total smoothing variance (optics, pixel integration, interpolation), which the
+lines' second moments measure; the positions are corrected by it. The five ellipse parameters then
+follow by linear least squares on the positions (the signed distance's derivatives in the
+quadratic-form parametrisation of :mod:`.edge_fit`), twice: the second pass re-centres every
+window on the first pass' ellipse so no tail is cut. The covariance is the least-squares one with
+the variance of the positions measured from their own residuals, so compression artefacts and
+model misfit widen it without an image-noise estimate.
+
+Lines where another printed edge comes within the window (``rho_range``, as in :mod:`.edge_fit`)
+are not used: on an oblique fiducial that drops the thin side of an annulus.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import ndtr
+
+from .edge_fit import EdgeFits, _from_quadratic_form, _per_matrix, _quadratic_form
+from .errors import DetectorError
+
+#: Samples per line, spread evenly over its window (at most a pixel apart: the sums are then
+#: exact to ~1e-5 for blur spreads from 0.5 px).
+SAMPLES = 7
+#: Largest half-window along a line, pixels (a first pass, from a seed about a pixel off).
+MAX_WINDOW_PX = 3.0
+#: Half-window of the final pass, in spreads of the derivative profile.
+_WINDOW_SPREADS = 2.5
+#: Arc length between neighbouring lines, pixels.
+LINE_SPACING_PX = 1.0
+#: Smallest distance, in spreads of the derivative profile, from the edge to either end of a
+#: line's window (the truncated tails are corrected for, reliably only this far out).
+_MIN_WINDOW_SPREADS = 2.0
+#: Lines whose window reaches this many spreads on both sides measure the spread.
+_WIDE_WINDOW_SPREADS = 2.0
+#: Largest curvature times spread where the centroid's curvature correction holds.
+_MAX_CURVATURE_SPREAD = 0.35
+#: Lines whose residual exceeds this many robust sds are dropped before the second solve.
+_OUTLIER_SDS = 4.0
+_MIN_LINES = 12
+#: Neighbouring lines share interpolated pixels: the residual sd, which takes them as
+#: independent, understates the fit's sd by about this factor (measured on renders).
+_CORRELATION = 1.2
+#: Image blur (optics, pixel integration, interpolation) assumed before it is measured, pixels.
+_START_BLUR = 0.8
+#: A first pass from a coarse seed uses every this many lines.
+_SPARSE = 3
+#: A fit whose last pass moved it less than this (pixels) has converged.
+_CONVERGED_PX = 0.05
+_FOLD = 4096
+_CURV = 1.0
+#: Fits per padded block.
+_BLOCK = 256
+_INV_SQRT_2PI = float(1.0 / np.sqrt(2.0 * np.pi))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Lines:
+    """Sample lines of one pass for a block of ``k`` fits, padded to ``m`` lines each."""
+
+    valid: NDArray[np.bool_]  # (k, m) a line, not padding
+    origin_u: NDArray[np.float64]  # (k, m) point on the current ellipse
+    origin_v: NDArray[np.float64]
+    normal_u: NDArray[np.float64]  # (k, m) outward unit normal
+    normal_v: NDArray[np.float64]
+    jac: NDArray[np.float64]  # (k, m, 5) d(signed distance)/d(u, v, A, B, C)
+    kappa: NDArray[np.float64]  # (k, m) curvature of the ellipse at the origin
+    lower: NDArray[np.float64]  # (k, m) window along the normal, pixels from the origin
+    upper: NDArray[np.float64]
+
+    @property
+    def step(self) -> NDArray[np.float64]:
+        """Spacing of the samples along each line."""
+        return (self.upper - self.lower) / (SAMPLES - 1)
+
+
+def refine_by_profiles(
+    image: NDArray[Any],
+    seeds: NDArray[np.float64],
+    *,
+    dark_inside: NDArray[np.bool_] | bool,
+    rho_range: tuple[float, float] = (0.0, np.inf),
+    passes: int = 4,
+) -> EdgeFits:
+    """Refine ellipses from edge profiles along their normals (see the module docstring).
+
+    Parameters
+    ----------
+    image : (H, W) ndarray
+        Grey image (uint8, uint16 or float), indexed ``[v, u]``.
+    seeds : (n, 5) ndarray
+        Starting ``(u, v, a, b, angle)``, full-image pixels; within about a pixel.
+    dark_inside : bool or (n,) ndarray of bool
+        Polarity of each edge (True: the ellipse's inside is darker).
+    rho_range : (float, float)
+        Half-way to the nearest other printed edges inside and outside, in units of the ellipse's
+        own scale: no line reaches beyond.
+    passes : int
+        Largest number of sampling passes (each re-centres the lines on the previous pass'
+        ellipse; a fit stops when it has converged).
+
+    Returns
+    -------
+    EdgeFits
+        ``pixels`` counts the lines used, ``chi`` is the RMS position residual in pixels.
+
+    Raises
+    ------
+    DetectorError
+        If the image is not 2-D, the seeds are not ``(n, 5)``, or a parameter is out of range.
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise DetectorError(f"image must be 2-D (grey), got shape {img.shape}")
+    seeds = np.asarray(seeds, dtype=np.float64)
+    if seeds.ndim != 2 or seeds.shape[1] != 5:
+        raise DetectorError(
+            f"seeds must be an (n, 5) array of (u, v, a, b, angle), got {seeds.shape}"
+        )
+    if passes < 1:
+        raise DetectorError(f"passes must be at least 1, got {passes}")
+    lo, hi = (float(x) for x in rho_range)
+    if not (0.0 <= lo < 1.0 < hi):
+        raise DetectorError(f"rho_range must satisfy 0 <= lo < 1 < hi, got {rho_range}")
+    n = seeds.shape[0]
+    polarity = np.where(np.broadcast_to(np.asarray(dark_inside, dtype=bool), (n,)), 1.0, -1.0)
+    src = img if img.dtype == np.float32 else img.astype(np.float32)
+    return refine_by_profiles_f32(src, seeds, polarity, (lo, hi), passes)
+
+
+def refine_by_profiles_f32(
+    src: NDArray[np.float32],
+    seeds: NDArray[np.float64],
+    polarity: NDArray[np.float64],
+    rho_range: tuple[float, float],
+    passes: int = 4,
+    spread: NDArray[np.float64] | None = None,
+) -> EdgeFits:
+    """:func:`refine_by_profiles` on a float32 image already converted (one conversion serves
+    every circle of a frame); ``polarity`` is +1 where the inside is dark. ``spread``: the
+    image blur of each fit where known (another edge of the same fiducial), used until the
+    fit's own lines measure it."""
+    n = seeds.shape[0]
+    out = EdgeFits(
+        params=np.full((n, 5), np.nan),
+        covariance=np.full((n, 5, 5), np.nan),
+        contrast=np.full(n, np.nan),
+        spread=np.full(n, np.nan),
+        chi=np.full(n, np.nan),
+        pixels=np.zeros(n, dtype=np.intp),
+        ok=np.zeros(n, dtype=bool),
+    )
+    usable = np.all(np.isfinite(seeds), axis=1) & (seeds[:, 3] > 1.0)
+    usable &= seeds[:, 2] >= seeds[:, 3]
+    idx = np.flatnonzero(usable)
+    if idx.size == 0 or min(src.shape) < 5:
+        return out
+    count = line_counts(seeds[idx])
+    # Blocks of fits with similar line counts, each padded to its largest.
+    order = np.argsort(count, kind="stable")
+    for first in range(0, idx.size, _BLOCK):
+        blk = order[first : first + _BLOCK]
+        j = idx[blk]
+        blur = None if spread is None else spread[j]
+        _fit_block(src, seeds[j], polarity[j], count[blk], rho_range, passes, blur, out, j)
+    drift = np.max(np.abs(out.params[:, :4] - seeds[:, :4]), axis=1)
+    # A fit that wandered off its seed by more than its windows was not fitting this edge.
+    out.ok[:] &= np.nan_to_num(drift, nan=np.inf) <= 2.0 * MAX_WINDOW_PX
+    return out
+
+
+def _fit_block(
+    src: NDArray[np.float32],
+    seeds: NDArray[np.float64],
+    pol: NDArray[np.float64],
+    count: NDArray[np.intp],
+    rho_range: tuple[float, float],
+    passes: int,
+    known_blur: NDArray[np.float64] | None,
+    out: EdgeFits,
+    j: NDArray[np.intp],
+) -> None:
+    """Fit one block of ellipses; results written into ``out`` at rows ``j``.
+
+    Without a known blur the seed is taken as coarse: a first pass on a third of the lines with
+    wide windows brings them onto the edge. Then full passes until the ellipse moves less than
+    :data:`_CONVERGED_PX` (at most ``passes`` in all), each fit leaving when it has.
+    """
+    k = seeds.shape[0]
+    cur = seeds.copy()
+    blur = np.full(k, _START_BLUR)
+    coarse_seed = known_blur is None
+    if known_blur is not None:
+        blur = np.where(np.isfinite(known_blur), known_blur, blur)
+    alive = np.ones(k, dtype=bool)
+    rows = np.arange(k)
+    for p in range(passes):
+        coarse = coarse_seed and p == 0 and passes > 1
+        c, b = cur[rows], blur[rows]
+        if coarse:
+            n_lines, cap = np.maximum(count[rows] // _SPARSE, 16), np.full(rows.size, MAX_WINDOW_PX)
+        else:
+            # Windows that hold the edge's tails and little more: every sample in a window adds
+            # noise to the area locator.
+            box = (2.0 * _WINDOW_SPREADS * b / (SAMPLES - 1)) ** 2 / 12.0
+            n_lines, cap = (
+                count[rows],
+                np.minimum(_WINDOW_SPREADS * np.sqrt(b**2 + box), MAX_WINDOW_PX),
+            )
+        res = _pass(src, c, b, pol[rows], n_lines, rho_range, cap, measure_blur=coarse)
+        ok = res.ok & alive[rows]
+        moved = np.max(np.abs(res.params[:, :4] - c[:, :4]), axis=1)
+        cur[rows] = np.where(ok[:, None], res.params, c)
+        blur[rows] = np.where(ok, res.spread, b)
+        alive[rows] = ok
+        if coarse:
+            continue
+        jr = j[rows]
+        out.params[jr] = res.params
+        out.covariance[jr] = res.covariance
+        out.contrast[jr] = res.contrast
+        out.spread[jr] = res.spread
+        out.chi[jr] = res.chi
+        out.pixels[jr] = res.pixels
+        out.ok[jr] = ok
+        rows = rows[ok & (moved > _CONVERGED_PX)]
+        if rows.size == 0:
+            break
+
+
+def _pass(
+    src: NDArray[np.float32],
+    cur: NDArray[np.float64],
+    blur: NDArray[np.float64],
+    pol: NDArray[np.float64],
+    n_lines: NDArray[np.intp],
+    rho_range: tuple[float, float],
+    cap: NDArray[np.float64],
+    *,
+    measure_blur: bool,
+) -> EdgeFits:
+    """One sampling pass: lines on the current ellipses, edge positions, a least-squares step.
+    Returns the stepped ellipses; ``spread`` is the blur, measured when ``measure_blur`` (wide
+    windows: the narrow ones of the final passes would feed back a truncated spread)."""
+    k = cur.shape[0]
+    lines = _lines(cur, n_lines, rho_range, cap)
+    mean, mass, m2 = _centroids(src, lines, pol)
+    lower, upper = lines.lower, lines.upper
+    box = lines.step**2 / 12.0  # the forward differences' box
+    good = lines.valid & np.isfinite(mean) & (mass > 0)
+    sg = np.sqrt(blur[:, None] ** 2 + box)
+    if measure_blur:
+        # From lines whose window holds both tails (at the assumed blur), their slight
+        # truncation undone.
+        wide = good & (mean - lower >= _WIDE_WINDOW_SPREADS * sg)
+        wide &= upper - mean >= _WIDE_WINDOW_SPREADS * sg
+        ratio = _truncated_variance((lower - mean) / sg, (upper - mean) / sg)
+        est = _mean(np.clip(m2 / ratio - box, 0.0, 9.0), wide)
+        blur = np.where(np.isfinite(est), np.sqrt(np.maximum(est, 0.04)), blur)
+        sg = np.sqrt(blur[:, None] ** 2 + box)
+    # The edge as the centre of the Gaussian whose window-truncated centroid was measured.
+    pos = mean.copy()
+    for _ in range(2):
+        pos = mean - sg * _truncated_mean((lower - pos) / sg, (upper - pos) / sg)
+    z = ndtr((upper - pos) / sg) - ndtr((lower - pos) / sg)
+    good &= (pos - lower >= _MIN_WINDOW_SPREADS * sg) & (upper - pos >= _MIN_WINDOW_SPREADS * sg)
+    # Where the ellipse bends within the blur the curvature correction below fails.
+    good &= lines.kappa * blur[:, None] <= _MAX_CURVATURE_SPREAD
+    # The step must be this fiducial's edge: its height near the fit's typical one.
+    height = mass / np.maximum(z, 1e-6)
+    typical = _mean(height, good)
+    good &= (height > 0.5 * typical[:, None]) & (height < 1.5 * typical[:, None])
+    # A blurred curved edge's centroid lies kappa s^2 / 2 inside it; then the linearised
+    # distance d_new(origin) = jac . delta = -t.
+    t = np.where(good, pos + _CURV * 0.5 * lines.kappa * blur[:, None] ** 2, 0.0)
+    delta, cov_f, rms, used = _solve(lines.jac, t, good)
+    ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
+    theta = np.zeros((k, 5))
+    theta[:, 2:] = _quadratic_form(cur[:, 2:5])
+    theta += np.where(ok[:, None], np.nan_to_num(delta), 0.0)
+    new, jac5 = _from_quadratic_form(theta)
+    new[:, :2] += cur[:, :2]
+    cov = jac5 @ cov_f @ np.swapaxes(jac5, 1, 2)
+    ok &= np.all(np.isfinite(new), axis=1) & (new[:, 3] > 0.5)
+    ok &= np.all(np.isfinite(cov), axis=(1, 2))
+    return EdgeFits(new, cov, pol * typical, blur, rms, used, ok)
+
+
+def _truncated_mean(alpha: NDArray[np.float64], beta: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Mean of a standard normal truncated to ``[alpha, beta]``."""
+    z = np.maximum(ndtr(beta) - ndtr(alpha), 1e-12)
+    return (np.exp(-0.5 * alpha * alpha) - np.exp(-0.5 * beta * beta)) * _INV_SQRT_2PI / z
+
+
+def _truncated_variance(
+    alpha: NDArray[np.float64], beta: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Variance of a standard normal truncated to ``[alpha, beta]``."""
+    z = np.maximum(ndtr(beta) - ndtr(alpha), 1e-12)
+    pa = np.exp(-0.5 * alpha * alpha) * _INV_SQRT_2PI
+    pb = np.exp(-0.5 * beta * beta) * _INV_SQRT_2PI
+    # Infinite ends contribute nothing to alpha * phi(alpha).
+    ta = np.where(np.isfinite(alpha), alpha * pa, 0.0)
+    tb = np.where(np.isfinite(beta), beta * pb, 0.0)
+    mean = (pa - pb) / z
+    return np.maximum(1.0 + (ta - tb) / z - mean * mean, 1e-6)
+
+
+def line_counts(ellipses: NDArray[np.float64]) -> NDArray[np.intp]:
+    """Lines a fit of each ``(u, v, a, b, angle)`` row samples: about one per pixel of arc
+    (Ramanujan's perimeter)."""
+    a, b = ellipses[:, 2], ellipses[:, 3]
+    h = ((a - b) / (a + b)) ** 2
+    perim = np.pi * (a + b) * (1.0 + 3.0 * h / (10.0 + np.sqrt(4.0 - 3.0 * h)))
+    return np.clip(np.round(perim / LINE_SPACING_PX), 16, 4096).astype(np.intp)
+
+
+def _lines(
+    ellipses: NDArray[np.float64],
+    count: NDArray[np.intp],
+    rho_range: tuple[float, float],
+    cap: NDArray[np.float64],
+) -> _Lines:
+    """``count`` lines on every ellipse of a block, with their geometry and windows."""
+    m = int(count.max())
+    kk = np.arange(m)[None, :]
+    valid = kk < count[:, None]
+    a, b, ang = (ellipses[:, i : i + 1] for i in (2, 3, 4))
+    # Spread evenly in arc length to first order: parametric angle phi = psi + e sin(2 psi) / 2,
+    # e = (a - b) / (a + b), for uniform psi.
+    psi = (kk + 0.5) * (2.0 * np.pi / count[:, None])
+    phi = psi + 0.5 * ((a - b) / (a + b)) * np.sin(2.0 * psi)
+    cp, sp = np.cos(phi), np.sin(phi)
+    ca, sa = np.cos(ang), np.sin(ang)
+    lx, ly = a * cp, b * sp  # point in the ellipse frame
+    nx, ny = b * cp, a * sp  # outward normal direction in the ellipse frame
+    nn = np.hypot(nx, ny)
+    nx /= nn
+    ny /= nn
+    du = ca * lx - sa * ly
+    dv = sa * lx + ca * ly
+    support = lx * nx + ly * ny  # distance of the tangent from the centre
+    kappa = a * b / nn**3
+    # Windows stop half-way to the neighbouring printed edges (concentric, so at rho times the
+    # support along the normal).
+    lo, hi = rho_range
+    lower = -np.minimum((1.0 - lo) * support, cap[:, None])
+    upper = np.minimum((hi - 1.0) * support, cap[:, None])
+    # d(signed distance)/d(u, v, A, B, C) at a point of the ellipse (rho = 1): the derivative of
+    # q = (p - c)^T Q (p - c) over |grad q|, with grad q = 2 Q (p - c).
+    q = _quadratic_form(ellipses[:, 2:5])
+    gx = q[:, 0:1] * du + q[:, 1:2] * dv
+    gy = q[:, 1:2] * du + q[:, 2:3] * dv
+    inv = 1.0 / np.hypot(gx, gy)
+    jac = np.stack(
+        [-gx * inv, -gy * inv, 0.5 * du * du * inv, du * dv * inv, 0.5 * dv * dv * inv], axis=2
+    )
+    return _Lines(
+        valid,
+        ellipses[:, 0:1] + du,
+        ellipses[:, 1:2] + dv,
+        ca * nx - sa * ny,
+        sa * nx + ca * ny,
+        jac,
+        kappa,
+        lower,
+        upper,
+    )
+
+
+def _centroids(
+    src: NDArray[np.float32], lines: _Lines, polarity: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Per line, over its window: the derivative's centroid (outward, pixels from the origin),
+    its mass (signed so that the expected polarity is positive) and its second central moment.
+
+    Forward differences of the samples telescope: the mass is the last sample less the first,
+    the centroid the area edge locator over the window (midpoint rule).
+    """
+    f32 = np.float32
+    k, m = lines.valid.shape
+    frac = np.linspace(0.0, 1.0, SAMPLES, dtype=f32)
+    width = (lines.upper - lines.lower).astype(f32)[:, :, None] * frac
+    start_u = lines.origin_u + lines.normal_u * lines.lower
+    start_v = lines.origin_v + lines.normal_v * lines.lower
+    mx = start_u.astype(f32)[:, :, None] + lines.normal_u.astype(f32)[:, :, None] * width
+    my = start_v.astype(f32)[:, :, None] + lines.normal_v.astype(f32)[:, :, None] * width
+    # remap takes maps of fewer than 32767 rows and columns: fold the samples into rows.
+    size = mx.size
+    rows = -(-size // _FOLD)
+    fx = np.zeros(rows * _FOLD, dtype=f32)
+    fy = np.zeros(rows * _FOLD, dtype=f32)
+    fx[:size] = mx.ravel()
+    fy[:size] = my.ravel()
+    prof = cv2.remap(
+        src,
+        fx.reshape(rows, _FOLD),
+        fy.reshape(rows, _FOLD),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    prof = prof.ravel()[:size].reshape(k, m, SAMPLES)
+    g = np.diff(prof, axis=2)  # at the midpoints (j + 1/2) steps from the window's start
+    mid = np.arange(SAMPLES - 1, dtype=f32) + f32(0.5)
+    mass = g.sum(axis=2, dtype=np.float64) * polarity[:, None]
+    step = lines.step
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c1 = (g @ mid).astype(np.float64) * polarity[:, None] / mass
+        c2 = (g @ (mid * mid)).astype(np.float64) * polarity[:, None] / mass
+        mean = lines.lower + step * c1
+        m2 = step * step * (c2 - c1 * c1)
+    return mean, mass, m2
+
+
+def _mean(values: NDArray[np.float64], good: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Mean of ``values`` over the good lines of each fit (NaN where none)."""
+    n = good.sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(good, values, 0.0).sum(axis=1) / n
+
+
+def _solve(
+    jac: NDArray[np.float64], t: NDArray[np.float64], good: NDArray[np.bool_]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
+    """Least squares ``jac . delta = -t`` per fit over the good lines, then once more without
+    the lines beyond :data:`_OUTLIER_SDS` robust sds: the step, its covariance (the positions'
+    variance from the residuals), the RMS residual and the lines used."""
+    k = jac.shape[0]
+    use = good
+    for rnd in range(2):
+        jw = jac * use[:, :, None]
+        normal = np.swapaxes(jw, 1, 2) @ jac
+        rhs = -(np.swapaxes(jw, 1, 2) @ t[:, :, None])[:, :, 0]
+        used = use.sum(axis=1)
+        solvable = used >= _MIN_LINES
+        delta = np.full((k, 5), np.nan)
+        if np.any(solvable):
+            delta[solvable] = _per_matrix(
+                lambda a, v: np.linalg.solve(a, v[..., None])[..., 0],
+                (int(solvable.sum()), 5),
+                normal[solvable],
+                rhs[solvable],
+            )
+        resid = np.where(use, t + (jac @ np.nan_to_num(delta)[:, :, None])[:, :, 0], 0.0)
+        sd = np.sqrt((resid * resid).sum(axis=1) / np.maximum(used - 5, 1))
+        if rnd == 0:
+            # Robust sd from the median absolute residual (a few bad lines inflate the RMS).
+            mad = _median_abs(resid, use)
+            use = good & (np.abs(resid) <= _OUTLIER_SDS * 1.4826 * mad[:, None])
+    cov = np.full((k, 5, 5), np.nan)
+    if np.any(solvable):
+        inv = _per_matrix(np.linalg.inv, (int(solvable.sum()), 5, 5), normal[solvable])
+        cov[solvable] = inv * ((_CORRELATION * sd[solvable]) ** 2)[:, None, None]
+    return delta, cov, sd, used.astype(np.intp)
+
+
+def _median_abs(resid: NDArray[np.float64], use: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Median of ``|resid|`` over each row's used entries."""
+    a = np.where(use, np.abs(resid), np.inf)
+    a.sort(axis=1)
+    n = use.sum(axis=1)
+    rows = np.arange(a.shape[0])
+    lo = a[rows, np.maximum((n - 1) // 2, 0)]
+    hi = a[rows, np.maximum(n // 2, 0)]
+    return np.where(n > 0, 0.5 * (lo + hi), np.inf)
