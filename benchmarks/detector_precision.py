@@ -12,8 +12,9 @@ size and slant) is rendered with :mod:`armourcam.render` under fresh noise for e
 Both fits start from the same component boundary: the contour of the thresholded pose circle
 (threshold halfway between paper white and toner black). The baseline fits that contour with
 ``cv2.fitEllipse``; ours uses that ellipse as the seed of the detector's own fit
-(:func:`fiducial_detector.detect.fit_design_circles`: the maximum-likelihood blurred-edge model,
-the ``ring`` design's annulus as one two-edge model).
+(:func:`fiducial_detector.detect.fit_design_circles`; ``--subpixel profile``, the default: edge
+profiles along the normals; ``--subpixel ml``: the maximum-likelihood blurred-edge model, the
+``ring`` design's annulus as one two-edge model).
 
 Per row, the table gives the worst case over slants of: the standard deviation of the centre over
 the noise realisations (max of the u and v std) and the bias (norm of the mean error); and the
@@ -47,7 +48,7 @@ from armourcam.render import (
     rotation_from_slant_tilt,
 )
 from fiducial_detector.design import get_design
-from fiducial_detector.detect import fit_design_circles
+from fiducial_detector.detect import SUBPIXEL_METHODS, SubpixelMethod, fit_design_circles
 from fiducial_detector.ellipse import ellipse_from_conic, estimate_noise, fit_ellipses
 from fiducial_detector.types import Ellipse
 from pose_estimator.camera import CameraModel
@@ -129,7 +130,13 @@ def contour_of(
 
 
 def run_config(
-    design: str, size: float, blur: float, noise: float, slant: float, reps: int
+    design: str,
+    size: float,
+    blur: float,
+    noise: float,
+    slant: float,
+    reps: int,
+    subpixel: SubpixelMethod = "profile",
 ) -> tuple[NDArray, NDArray, NDArray, NDArray, int, int]:
     """Centre errors of ours (vs ellipse, vs projection), predicted std, and baseline errors."""
     circle = get_design(design).pose_circle
@@ -153,7 +160,9 @@ def run_config(
             sa, sb, sang = sb, sa, sang + 0.5 * np.pi
         seed = np.array([[su, sv, sa, sb, np.mod(sang, np.pi)]])
         noise_std = estimate_noise(scene.image)
-        fits = fit_design_circles(scene.image, seed, get_design(design), noise_std)[0]
+        fits = fit_design_circles(
+            scene.image, seed, get_design(design), noise_std, method=subpixel
+        )[0]
         e = fits[0] if fits else None
         if e is None:
             fail_ours += 1
@@ -179,13 +188,22 @@ def _bias(err: NDArray) -> float:
     return float(np.hypot(*err.mean(axis=0))) if len(err) else float("nan")
 
 
-def summarise(design: str, size: float, blur: float, noise: float, reps: int) -> Row:
+def summarise(
+    design: str,
+    size: float,
+    blur: float,
+    noise: float,
+    reps: int,
+    subpixel: SubpixelMethod = "profile",
+) -> Row:
     """Worst case over :data:`SLANTS` (std, bias); calibration as the geometric mean and the
     worst of the std/predicted ratios over slants and both coordinates."""
     row = Row(0.0, 0.0, 0.0, 1.0, 1.0, 0, 0.0, 0.0, 0)
     ratios = []
     for slant in SLANTS:
-        ours, proj, pred, base, fo, fc = run_config(design, size, blur, noise, slant, reps)
+        ours, proj, pred, base, fo, fc = run_config(
+            design, size, blur, noise, slant, reps, subpixel
+        )
         row.ours_std = max(row.ours_std, _std(ours))
         row.ours_bias = max(row.ours_bias, _bias(ours))
         row.ours_bias_proj = max(row.ours_bias_proj, _bias(proj))
@@ -246,8 +264,15 @@ def speed(repeats: int = 3) -> None:
     print(f"\nFit speed, {placed} ring targets of 60 px on a 3008x2000 frame, one thread:")
     runs: list[tuple[str, Callable[[], list[Any]]]] = [
         (
-            "production (edge model, annulus + dot)",
+            "profile (default: edge profiles, 3 circles)",
             lambda: [g or None for g in fit_design_circles(frame, pose_seeds, design, noise_std)],
+        ),
+        (
+            "ml (edge model, annulus + dot)",
+            lambda: [
+                g or None
+                for g in fit_design_circles(frame, pose_seeds, design, noise_std, method="ml")
+            ],
         ),
         (
             "dual conic, 3 circles (fallback)",
@@ -273,12 +298,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reps", type=int, default=30, help="noise realisations per slant")
     parser.add_argument("--quick", action="store_true", help="60 px only, 10 realisations")
+    parser.add_argument(
+        "--subpixel", choices=SUBPIXEL_METHODS, default="profile", help="our fit's method"
+    )
     args = parser.parse_args(argv)
     sizes = (60,) if args.quick else SIZES
     reps = 10 if args.quick else args.reps
     print(
         f"Centre precision of the pose-circle fit, worst case over slants {SLANTS} deg, "
-        f"{reps} noise realisations each (pixels)."
+        f"{reps} noise realisations each (pixels); ours = subpixel={args.subpixel}."
     )
     print("std = max(std_u, std_v); bias = |mean error| vs the true ellipse centre;")
     print("bias(proj) = vs the projected circle centre (perspective offset, corrected in pose);")
@@ -295,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
     for design in DESIGNS:
         for size in sizes:
             for blur, noise in DEGRADATIONS:
-                r = summarise(design, size, blur, noise, reps)
+                r = summarise(design, size, blur, noise, reps, args.subpixel)
                 print(
                     f"{design:6} {size:4d} {blur:4.1f} {100 * noise:4.0f}% | "
                     f"{r.ours_std:8.4f} {r.ours_bias:7.4f} {r.ours_bias_proj:10.4f} "

@@ -37,7 +37,7 @@ from fiducial_detector import detect
 from fiducial_detector.code_reader import ReaderConfig, read_codes
 from fiducial_detector.components import outer_boundaries
 from fiducial_detector.design import get_design
-from fiducial_detector.detect import DesignChoice
+from fiducial_detector.detect import DesignChoice, SubpixelMethod
 from fiducial_detector.threshold import bradley_threshold
 
 FRAME = (3008, 2000)
@@ -113,7 +113,7 @@ def stage_times(image: NDArray[Any], design: str, repeats: int) -> list[tuple[st
     _, t_fin, _ = timed(
         lambda: _detect_module._finish(
             image, 255.0, _detect_module._candidates(bounds, spec, min_d, max_d), ReaderConfig()
-        ),
+        ),  # the default sub-pixel method
         1,
     )
     return [
@@ -140,13 +140,19 @@ def main(argv: list[str] | None = None) -> int:
         scene = random_scene(
             camera, N_TARGETS, SIZE_PX, design, rng, 60.0, True, blur_sigma=BLUR, noise=NOISE
         )
-        for mode in (design, "any"):
-            run = partial(detect, scene.image, design=cast(DesignChoice, mode))
+        for mode, subpixel in ((design, "profile"), ("any", "profile"), (design, "ml")):
+            run = partial(
+                detect,
+                scene.image,
+                design=cast(DesignChoice, mode),
+                subpixel=cast(SubpixelMethod, subpixel),
+            )
             wall, cpu, found = timed(run, repeats)
             good, wrong = count_correct(found, scene.truth)
-            rows.append(
-                (f"armourcam {design} frame, design={mode}", wall, cpu, f"{good} ({wrong})")
+            name = f"armourcam {design} frame, design={mode}" + (
+                "" if subpixel == "profile" else f", {subpixel}"
             )
+            rows.append((name, wall, cpu, f"{good} ({wrong})"))
         stages[design] = stage_times(scene.image, design, repeats)
     tags, ids = tag_frame(rng)
     try:

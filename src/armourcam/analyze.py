@@ -84,6 +84,7 @@ def analyze_bag(
     run_id_topic: str | None = None,
     capture_topic: str | None = None,
     diameter_mm: float = 7.1,
+    subpixel: str = "profile",
     calibration: CameraModel | None = None,
     session_config: SessionConfig | None = None,
     comparer: Comparer | None = None,
@@ -155,7 +156,7 @@ def analyze_bag(
                             raise AnalyzeError("no camera info before this frame")
                         image = image_codec.decode(m.message)
                         camera.check_image_size(image.shape[1], image.shape[0])
-                        dets = detect(image)
+                        dets = detect(image, subpixel=subpixel)  # type: ignore[arg-type]
                         poses = estimate(dets, camera, diameter_mm)
                     except ValueError as err:
                         result.frames_dropped += 1

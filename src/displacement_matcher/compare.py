@@ -54,6 +54,7 @@ def poses_from_images(
     diameter_mm: float,
     *,
     design: str = "any",
+    subpixel: str = "profile",
 ) -> list[FiducialPose]:
     """Detect, estimate and (for several images of one static state) fuse fiducial poses.
 
@@ -71,7 +72,8 @@ def poses_from_images(
     for image in images:
         h, w = image.shape[:2]
         camera.check_image_size(w, h)
-        frames.append(estimate(detect(image, design=design), camera, diameter_mm))  # type: ignore[arg-type]
+        found = detect(image, design=design, subpixel=subpixel)  # type: ignore[arg-type]
+        frames.append(estimate(found, camera, diameter_mm))
     if len(frames) == 1:
         return list(frames[0])
     return list(fuse(frames))

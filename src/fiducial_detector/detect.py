@@ -525,8 +525,9 @@ def _profile_circle(
     r = circle.radius
     polarity = np.full(len(seeds), 1.0 if circle.dark_inside else -1.0)
     rho = (1.0 - 0.5 * (r - inner) / r, 1.0 + 0.5 * (outer - r) / r)
-    # Circles seeded from the fitted pose circle (blur known) are near: one pass, rarely two.
-    passes = 4 if blur is None else 2
+    # Circles seeded from the fitted pose circle (blur known) are within a tenth of a pixel
+    # (perspective): one pass, whose first-order window corrections hold that far.
+    passes = 4 if blur is None else 1
     return refine_by_profiles_f32(src, seeds, polarity, rho, passes=passes, spread=blur)
 
 

@@ -25,7 +25,8 @@ A frame that cannot be decoded (unknown encoding, wrong ``step``, zero size, cor
 detected is logged with the reason and dropped; the node lives on.
 
 Parameters (all read-only unless noted): see :data:`PARAMS` (``image_topic``, ``transport``,
-``detections_topic``, ``qos``, ``queue_depth``, ``design``, ``diagnostics_period_s``).
+``detections_topic``, ``qos``, ``queue_depth``, ``design``, ``subpixel``,
+``diagnostics_period_s``).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from armourcam.graph import (
 )
 
 from .design import DESIGNS
-from .detect import DesignChoice
+from .detect import SUBPIXEL_METHODS, DesignChoice, SubpixelMethod
 
 PARAMS = (
     Param("image_topic", "/camera/image_raw", "Camera image topic (raw images)."),
@@ -80,6 +81,13 @@ PARAMS = (
         "Fiducial design to look for (any: both designs).",
         choices=("any", *sorted(DESIGNS)),
     ),
+    Param(
+        "subpixel",
+        "profile",
+        "Sub-pixel ellipse method: profile (fast, for live frames) or ml (the edge model, "
+        "about half the centre noise, several times slower).",
+        choices=SUBPIXEL_METHODS,
+    ),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics, s.", minimum=0.1),
 )
 
@@ -94,6 +102,7 @@ class DetectorNodeConfig:
     qos: str
     queue_depth: int
     design: str
+    subpixel: str
     diagnostics_period_s: float
 
     @property
@@ -138,7 +147,11 @@ class FiducialDetectorNode(Node):
         t0 = time.perf_counter()
         try:
             image = image_codec.decode(msg)
-            dets = self._detect(image, design=cast(DesignChoice, self.config.design))
+            dets = self._detect(
+                image,
+                design=cast(DesignChoice, self.config.design),
+                subpixel=cast(SubpixelMethod, self.config.subpixel),
+            )
         except Exception as err:
             # image_codec's and the detector's input errors are ValueErrors; anything else is a
             # bug worth its type name in the log, but still not worth the rig's monitoring.

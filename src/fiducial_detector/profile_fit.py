@@ -267,15 +267,16 @@ def _pass(
         # truncation undone.
         wide = good & (mean - lower >= _WIDE_WINDOW_SPREADS * sg)
         wide &= upper - mean >= _WIDE_WINDOW_SPREADS * sg
-        ratio = _truncated_variance((lower - mean) / sg, (upper - mean) / sg)
+        _, _, ratio = _truncated_normal((lower - mean) / sg, (upper - mean) / sg)
         est = _mean(np.clip(m2 / ratio - box, 0.0, 9.0), wide)
         blur = np.where(np.isfinite(est), np.sqrt(np.maximum(est, 0.04)), blur)
         sg = np.sqrt(blur[:, None] ** 2 + box)
-    # The edge as the centre of the Gaussian whose window-truncated centroid was measured.
-    pos = mean.copy()
-    for _ in range(2):
-        pos = mean - sg * _truncated_mean((lower - pos) / sg, (upper - pos) / sg)
-    z = ndtr((upper - pos) / sg) - ndtr((lower - pos) / sg)
+    # The edge as the centre of the Gaussian whose window-truncated centroid was measured: to
+    # first order in its offset c from the line's origin the centroid is sg T + c V, with T, V
+    # the truncated standard normal's mean and variance (the origin lies within a few
+    # hundredths of the edge once a fit has converged).
+    z, shift, gain = _window_terms(lower, upper, sg, blur, cap)
+    pos = (mean - sg * shift) / gain
     good &= (pos - lower >= _MIN_WINDOW_SPREADS * sg) & (upper - pos >= _MIN_WINDOW_SPREADS * sg)
     # Where the ellipse bends within the blur the curvature correction below fails.
     good &= lines.kappa * blur[:, None] <= _MAX_CURVATURE_SPREAD
@@ -299,24 +300,40 @@ def _pass(
     return EdgeFits(new, cov, pol * typical, blur, rms, used, ok)
 
 
-def _truncated_mean(alpha: NDArray[np.float64], beta: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Mean of a standard normal truncated to ``[alpha, beta]``."""
-    z = np.maximum(ndtr(beta) - ndtr(alpha), 1e-12)
-    return (np.exp(-0.5 * alpha * alpha) - np.exp(-0.5 * beta * beta)) * _INV_SQRT_2PI / z
+def _window_terms(
+    lower: NDArray[np.float64],
+    upper: NDArray[np.float64],
+    sg: NDArray[np.float64],
+    blur: NDArray[np.float64],
+    cap: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`_truncated_normal` of every line's window in spreads ``sg``. Most windows are their
+    fit's symmetric cap: one evaluation per fit; the lines cut shorter are evaluated apiece."""
+    box = (2.0 * cap / (SAMPLES - 1)) ** 2 / 12.0
+    half = cap / np.sqrt(blur * blur + box)
+    z0, _, v0 = _truncated_normal(-half, half)
+    shape = lower.shape
+    z = np.repeat(z0[:, None], shape[1], axis=1)
+    gain = np.repeat(v0[:, None], shape[1], axis=1)
+    shift = np.zeros(shape)
+    cut = (lower > -cap[:, None] + 1e-9) | (upper < cap[:, None] - 1e-9)
+    if np.any(cut):
+        z[cut], shift[cut], gain[cut] = _truncated_normal(
+            lower[cut] / sg[cut], upper[cut] / sg[cut]
+        )
+    return z, shift, gain
 
 
-def _truncated_variance(
+def _truncated_normal(
     alpha: NDArray[np.float64], beta: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Variance of a standard normal truncated to ``[alpha, beta]``."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Mass, mean and variance of a standard normal truncated to ``[alpha, beta]`` (finite)."""
     z = np.maximum(ndtr(beta) - ndtr(alpha), 1e-12)
     pa = np.exp(-0.5 * alpha * alpha) * _INV_SQRT_2PI
     pb = np.exp(-0.5 * beta * beta) * _INV_SQRT_2PI
-    # Infinite ends contribute nothing to alpha * phi(alpha).
-    ta = np.where(np.isfinite(alpha), alpha * pa, 0.0)
-    tb = np.where(np.isfinite(beta), beta * pb, 0.0)
     mean = (pa - pb) / z
-    return np.maximum(1.0 + (ta - tb) / z - mean * mean, 1e-6)
+    var = np.maximum(1.0 + (alpha * pa - beta * pb) / z - mean * mean, 1e-6)
+    return z, mean, var
 
 
 def line_counts(ellipses: NDArray[np.float64]) -> NDArray[np.intp]:
@@ -347,13 +364,13 @@ def _lines(
     ca, sa = np.cos(ang), np.sin(ang)
     lx, ly = a * cp, b * sp  # point in the ellipse frame
     nx, ny = b * cp, a * sp  # outward normal direction in the ellipse frame
-    nn = np.hypot(nx, ny)
+    nn = np.sqrt(nx * nx + ny * ny)
     nx /= nn
     ny /= nn
     du = ca * lx - sa * ly
     dv = sa * lx + ca * ly
     support = lx * nx + ly * ny  # distance of the tangent from the centre
-    kappa = a * b / nn**3
+    kappa = a * b / (nn * nn * nn)
     # Windows stop half-way to the neighbouring printed edges (concentric, so at rho times the
     # support along the normal).
     lo, hi = rho_range
@@ -364,10 +381,14 @@ def _lines(
     q = _quadratic_form(ellipses[:, 2:5])
     gx = q[:, 0:1] * du + q[:, 1:2] * dv
     gy = q[:, 1:2] * du + q[:, 2:3] * dv
-    inv = 1.0 / np.hypot(gx, gy)
-    jac = np.stack(
-        [-gx * inv, -gy * inv, 0.5 * du * du * inv, du * dv * inv, 0.5 * dv * dv * inv], axis=2
-    )
+    inv = 1.0 / np.sqrt(gx * gx + gy * gy)
+    jac = np.empty((*du.shape, 5))
+    np.multiply(gx, -inv, out=jac[:, :, 0])
+    np.multiply(gy, -inv, out=jac[:, :, 1])
+    half = 0.5 * inv
+    np.multiply(du * du, half, out=jac[:, :, 2])
+    np.multiply(du * dv, inv, out=jac[:, :, 3])
+    np.multiply(dv * dv, half, out=jac[:, :, 4])
     return _Lines(
         valid,
         ellipses[:, 0:1] + du,
@@ -394,17 +415,19 @@ def _centroids(
     k, m = lines.valid.shape
     frac = np.linspace(0.0, 1.0, SAMPLES, dtype=f32)
     width = (lines.upper - lines.lower).astype(f32)[:, :, None] * frac
-    start_u = lines.origin_u + lines.normal_u * lines.lower
-    start_v = lines.origin_v + lines.normal_v * lines.lower
-    mx = start_u.astype(f32)[:, :, None] + lines.normal_u.astype(f32)[:, :, None] * width
-    my = start_v.astype(f32)[:, :, None] + lines.normal_v.astype(f32)[:, :, None] * width
-    # remap takes maps of fewer than 32767 rows and columns: fold the samples into rows.
-    size = mx.size
+    # remap takes maps of fewer than 32767 rows and columns: the samples are written straight
+    # into rows of a folded map.
+    size = k * m * SAMPLES
     rows = -(-size // _FOLD)
     fx = np.zeros(rows * _FOLD, dtype=f32)
     fy = np.zeros(rows * _FOLD, dtype=f32)
-    fx[:size] = mx.ravel()
-    fy[:size] = my.ravel()
+    for buf, origin, normal in (
+        (fx, lines.origin_u, lines.normal_u),
+        (fy, lines.origin_v, lines.normal_v),
+    ):
+        view = buf[:size].reshape(k, m, SAMPLES)
+        np.multiply(normal.astype(f32)[:, :, None], width, out=view)
+        view += (origin + normal * lines.lower).astype(f32)[:, :, None]
     prof = cv2.remap(
         src,
         fx.reshape(rows, _FOLD),
@@ -413,16 +436,32 @@ def _centroids(
         borderMode=cv2.BORDER_REPLICATE,
     )
     prof = prof.ravel()[:size].reshape(k, m, SAMPLES)
-    g = np.diff(prof, axis=2)  # at the midpoints (j + 1/2) steps from the window's start
-    mid = np.arange(SAMPLES - 1, dtype=f32) + f32(0.5)
-    mass = g.sum(axis=2, dtype=np.float64) * polarity[:, None]
+    # Sums over the forward differences at the midpoints (j + 1/2) steps from the window's
+    # start, of 1, (j + 1/2) and (j + 1/2)^2, as weights on the samples (one product).
+    sums = (prof @ _MOMENT_WEIGHTS).astype(np.float64)
+    mass = sums[:, :, 0] * polarity[:, None]
     step = lines.step
     with np.errstate(divide="ignore", invalid="ignore"):
-        c1 = (g @ mid).astype(np.float64) * polarity[:, None] / mass
-        c2 = (g @ (mid * mid)).astype(np.float64) * polarity[:, None] / mass
+        inv = polarity[:, None] / mass
+        c1 = sums[:, :, 1] * inv
+        c2 = sums[:, :, 2] * inv
         mean = lines.lower + step * c1
         m2 = step * step * (c2 - c1 * c1)
     return mean, mass, m2
+
+
+def _moment_weights() -> NDArray[np.float32]:
+    """``(SAMPLES, 3)``: sample weights giving sum(d), sum(d x), sum(d x^2) of the forward
+    differences d_j = p_(j+1) - p_j at x_j = j + 1/2."""
+    x = np.arange(SAMPLES - 1) + 0.5
+    w = np.zeros((SAMPLES, 3))
+    for power in range(3):
+        w[1:, power] += x**power
+        w[:-1, power] -= x**power
+    return w.astype(np.float32)
+
+
+_MOMENT_WEIGHTS = _moment_weights()
 
 
 def _mean(values: NDArray[np.float64], good: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -457,22 +496,10 @@ def _solve(
         resid = np.where(use, t + (jac @ np.nan_to_num(delta)[:, :, None])[:, :, 0], 0.0)
         sd = np.sqrt((resid * resid).sum(axis=1) / np.maximum(used - 5, 1))
         if rnd == 0:
-            # Robust sd from the median absolute residual (a few bad lines inflate the RMS).
-            mad = _median_abs(resid, use)
-            use = good & (np.abs(resid) <= _OUTLIER_SDS * 1.4826 * mad[:, None])
+            # A few bad lines inflate the RMS only a little among a fit's hundred or more.
+            use = good & (np.abs(resid) <= _OUTLIER_SDS * sd[:, None])
     cov = np.full((k, 5, 5), np.nan)
     if np.any(solvable):
         inv = _per_matrix(np.linalg.inv, (int(solvable.sum()), 5, 5), normal[solvable])
         cov[solvable] = inv * ((_CORRELATION * sd[solvable]) ** 2)[:, None, None]
     return delta, cov, sd, used.astype(np.intp)
-
-
-def _median_abs(resid: NDArray[np.float64], use: NDArray[np.bool_]) -> NDArray[np.float64]:
-    """Median of ``|resid|`` over each row's used entries."""
-    a = np.where(use, np.abs(resid), np.inf)
-    a.sort(axis=1)
-    n = use.sum(axis=1)
-    rows = np.arange(a.shape[0])
-    lo = a[rows, np.maximum((n - 1) // 2, 0)]
-    hi = a[rows, np.maximum(n // 2, 0)]
-    return np.where(n > 0, 0.5 * (lo + hi), np.inf)

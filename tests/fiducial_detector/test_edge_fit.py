@@ -1,72 +1,42 @@
-"""The maximum-likelihood blurred-edge fit against the renderer's exact image conics.
-
-Images come from :mod:`armourcam.render` (the one renderer) with seeded noise; the truth is
-``TargetTruth.conics`` (ideal camera, so the image conics are exact).
-"""
+"""The maximum-likelihood blurred-edge fit against the renderer's exact image conics
+(scenes from :mod:`fit_scenes`)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from numpy.typing import NDArray
+from fit_scenes import abs_errors, coarse_seed, render_one, true_ellipse
 
-from armourcam.render import RenderedScene, Target, render, rotation_from_slant_tilt
 from fiducial_detector.design import get_design
-from fiducial_detector.detect import fit_design_circles
+from fiducial_detector.detect import SubpixelMethod, fit_design_circles
 from fiducial_detector.edge_fit import refine_annuli, refine_ellipses
-from fiducial_detector.ellipse import ellipse_from_conic, fit_ellipse
+from fiducial_detector.ellipse import fit_ellipse
 from fiducial_detector.errors import DetectorError
 from fiducial_detector.types import Ellipse
-from pose_estimator.camera import CameraModel
-
-FOCAL = 2000.0
-DIAMETER = 7.1
 
 
-def _scene(
-    design: str, size: float, slant_deg: float, blur: float, noise: float, seed: int
-) -> RenderedScene:
-    z = FOCAL * DIAMETER / size
-    n = int(1.5 * size) + 24
-    cam = CameraModel.ideal(n, n, FOCAL, center=(n / 2 - 0.31, n / 2 + 0.17))
-    R = rotation_from_slant_tilt(np.radians(slant_deg), 0.4, 0.3)
-    target = Target(7, design, DIAMETER, R, np.array([0.0, 0.0, z]))
-    return render(cam, [target], blur_sigma=blur, noise=noise, rng=np.random.default_rng(seed))
-
-
-def _truth(scene: RenderedScene, k: int) -> NDArray[np.float64]:
-    return np.array(ellipse_from_conic(scene.truth[0].conics[k]))
-
-
-def _seed(truth: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
-    """A coarse seed like a component boundary's ellipse: ~0.4 px, ~0.3 px, ~1 degree off."""
-    seed = truth + np.r_[rng.normal(0, 0.4, 2), rng.normal(0, 0.3, 2), rng.normal(0, 0.02)]
-    seed[2:4] = np.sort(seed[2:4])[::-1]
-    return seed
-
-
-def _errors(params: NDArray[np.float64], truth: NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.abs(params[:4] - truth[:4])
-
-
+@pytest.mark.parametrize("method", ["profile", "ml"])
 @pytest.mark.parametrize(
     ("design", "size", "slant"),
     [("ring", 60, 0), ("ring", 60, 45), ("ring", 45, 60), ("dot", 60, 0), ("dot", 60, 45)],
 )
 def test_production_fit_recovers_every_circle_without_noise(
-    design: str, size: float, slant: float
+    design: str, size: float, slant: float, method: SubpixelMethod
 ) -> None:
-    """Every fitted circle lies on the exact image conic; the pose circle within 0.02 px."""
-    scene = _scene(design, size, slant, 0.6, 0.0, 0)
+    """Both methods: every fitted circle lies on the exact image conic; the pose circle within
+    0.02 px."""
+    scene = render_one(design, size, slant, 0.6, 0.0, 0)
     spec = get_design(design)
-    seed = _seed(_truth(scene, 0), np.random.default_rng(1))
-    fits = fit_design_circles(scene.image, seed[None], spec, 0.5)[0]
+    seed = coarse_seed(true_ellipse(scene, 0), np.random.default_rng(1))
+    fits = fit_design_circles(scene.image, seed[None], spec, 0.5, method=method)[0]
     assert fits, "pose circle not fitted"
     radii = [c.radius for c in spec.circles]
     assert fits[0].radius == radii[0]
     for e in fits:
         k = radii.index(e.radius)
-        err = _errors(np.array([*e.center_px, e.semi_major, e.semi_minor]), _truth(scene, k))
+        err = abs_errors(
+            np.array([*e.center_px, e.semi_major, e.semi_minor]), true_ellipse(scene, k)
+        )
         # Inner circles: this close to the camera (f = 2000 px) perspective moves them a few
         # hundredths from the scaled outer edge their band and seed come from.
         bound = 0.02 if k == 0 else (0.25 if size < 60 else 0.07)
@@ -78,9 +48,9 @@ def test_mean_is_unbiased_where_the_gradient_fit_shrinks() -> None:
     variables); the edge model's mean radius stays within 0.006 px of the truth."""
     ml, dc = [], []
     for rep in range(10):
-        scene = _scene("ring", 120, 0, 0.5, 0.02, 100 + rep)
-        truth = _truth(scene, 0)
-        seed = _seed(truth, np.random.default_rng(rep))
+        scene = render_one("ring", 120, 0, 0.5, 0.02, 100 + rep)
+        truth = true_ellipse(scene, 0)
+        seed = coarse_seed(truth, np.random.default_rng(rep))
         fit = refine_ellipses(scene.image, seed[None], dark_inside=True, noise_std=0.02 * 255)
         assert fit.ok[0]
         ml.append(0.5 * (fit.params[0, 2] + fit.params[0, 3]) - 0.5 * (truth[2] + truth[3]))
@@ -101,9 +71,9 @@ def test_covariance_predicts_the_scatter() -> None:
     """Predicted standard deviations of (u, v, a, b) within 35 % of the empirical ones."""
     errs, preds = [], []
     for rep in range(24):
-        scene = _scene("ring", 60, 35, 0.7, 0.02, 200 + rep)
-        truth = _truth(scene, 0)
-        seed = _seed(truth, np.random.default_rng(50 + rep))
+        scene = render_one("ring", 60, 35, 0.7, 0.02, 200 + rep)
+        truth = true_ellipse(scene, 0)
+        seed = coarse_seed(truth, np.random.default_rng(50 + rep))
         fit = refine_ellipses(
             scene.image, seed[None], dark_inside=True, noise_std=0.02 * 255, rho_range=(0.9, 1.15)
         )
@@ -120,32 +90,32 @@ def test_covariance_predicts_the_scatter() -> None:
 def test_annulus_model_fits_both_edges_of_an_oblique_ring() -> None:
     """At 60 px and 55 deg the annulus is under 3 px thin along the minor axis: the two-edge
     model still puts the outer edge within 0.02 px; the inner edge is fitted where it is seen."""
-    scene = _scene("ring", 60, 55, 0.7, 0.0, 0)
-    outer, inner = _truth(scene, 0), _truth(scene, 1)
+    scene = render_one("ring", 60, 55, 0.7, 0.0, 0)
+    outer, inner = true_ellipse(scene, 0), true_ellipse(scene, 1)
     rng = np.random.default_rng(3)
-    so = _seed(outer, rng)
+    so = coarse_seed(outer, rng)
     si = so.copy()
     si[2:4] *= 0.8
     fo, fi = refine_annuli(
         scene.image, so[None], si[None], dark_annulus=True, noise_std=1.0, rho_range=(0.9375, 1.15)
     )
     assert fo.ok[0]
-    assert np.all(_errors(fo.params[0], outer) < 0.02), fo.params[0] - outer
+    assert np.all(abs_errors(fo.params[0], outer) < 0.02), fo.params[0] - outer
     # The inner edge lies 1.5 px from the code sectors there and, this close to the camera,
     # perspective moves it 0.3 px from the scaled outer edge: it is not reported.
     assert not fi.ok[0]
     # Face-on and at 120 px it is seen, and fitted.
-    scene = _scene("ring", 120, 20, 0.5, 0.0, 0)
-    outer, inner = _truth(scene, 0), _truth(scene, 1)
-    so = _seed(outer, rng)
+    scene = render_one("ring", 120, 20, 0.5, 0.0, 0)
+    outer, inner = true_ellipse(scene, 0), true_ellipse(scene, 1)
+    so = coarse_seed(outer, rng)
     si = so.copy()
     si[2:4] *= 0.8
     fo, fi = refine_annuli(
         scene.image, so[None], si[None], dark_annulus=True, noise_std=1.0, rho_range=(0.9375, 1.15)
     )
     assert fo.ok[0] and fi.ok[0]
-    assert np.all(_errors(fo.params[0], outer) < 0.02), fo.params[0] - outer
-    assert np.all(_errors(fi.params[0], inner) < 0.03), fi.params[0] - inner
+    assert np.all(abs_errors(fo.params[0], outer) < 0.02), fo.params[0] - outer
+    assert np.all(abs_errors(fi.params[0], inner) < 0.03), fi.params[0] - inner
 
 
 def test_unfittable_seeds_fail_cleanly_and_bad_arguments_raise() -> None:

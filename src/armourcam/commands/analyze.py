@@ -41,6 +41,12 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--settle-tolerance-mm", type=float, default=0.5, help="settled-scene tolerance, mm"
     )
+    p.add_argument(
+        "--subpixel",
+        choices=("profile", "ml"),
+        default="profile",
+        help="sub-pixel ellipse method (ml: the edge model, about half the centre noise, slower)",
+    )
     p.set_defaults(func=run)
 
 
@@ -74,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         run_active_topic=args.run_active_topic,
         run_id_topic=args.run_id_topic,
         diameter_mm=args.diameter_mm,
+        subpixel=args.subpixel,
         calibration=calibration,
         session_config=cfg,
         comparer=comparer,

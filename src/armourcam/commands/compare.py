@@ -36,6 +36,12 @@ def register(subparsers: Any) -> None:
     p.add_argument("--units", help="unit map YAML (explicit units or a repeated template)")
     p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
     p.add_argument("--design", choices=("any", "ring", "dot"), default="any")
+    p.add_argument(
+        "--subpixel",
+        choices=("profile", "ml"),
+        default="profile",
+        help="sub-pixel ellipse method (ml: the edge model, about half the centre noise, slower)",
+    )
     p.add_argument("--dn-mm", type=float, default=DEFAULT_DN_MM, help="nominal unit size Dn, mm")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--displaced-dn", type=float, help="displacement threshold in Dn (default 1)")
@@ -83,8 +89,12 @@ def run(args: argparse.Namespace) -> int:
     )
     before_imgs = [_read(p) for p in args.before]
     after_imgs = [_read(p) for p in args.after]
-    before = poses_from_images(before_imgs, camera, args.diameter_mm, design=args.design)
-    after = poses_from_images(after_imgs, camera, args.diameter_mm, design=args.design)
+    before = poses_from_images(
+        before_imgs, camera, args.diameter_mm, design=args.design, subpixel=args.subpixel
+    )
+    after = poses_from_images(
+        after_imgs, camera, args.diameter_mm, design=args.design, subpixel=args.subpixel
+    )
     kw: dict[str, float] = {}
     if args.gate_mm is not None:
         kw["gate_mm"] = args.gate_mm

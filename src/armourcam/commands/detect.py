@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from fiducial_detector import DetectorError, detect
+from fiducial_detector.detect import SUBPIXEL_METHODS
 from fiducial_detector.types import Ellipse, FiducialDetection
 from pose_estimator import CalibrationError, CameraModel, estimate
 
@@ -42,6 +43,13 @@ def register(subparsers: Any) -> None:
         choices=("any", "ring", "dot"),
         default="any",
         help="fiducial design to look for (default: any, both designs in one image)",
+    )
+    parser.add_argument(
+        "--subpixel",
+        choices=SUBPIXEL_METHODS,
+        default="profile",
+        help="sub-pixel ellipse method: profile (default, fast) or ml (the edge model, about "
+        "half the centre noise)",
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument(
@@ -137,14 +145,16 @@ def pose_record(
     }
 
 
-def detect_file(path: str, design: str, **context: Any) -> dict[str, Any]:
+def detect_file(
+    path: str, design: str, subpixel: str = "profile", **context: Any
+) -> dict[str, Any]:
     """Read and process one file; errors become the record's one-line ``error``."""
     try:
         image = read_image(path)
         camera = context.get("camera")
         if camera is not None:
             camera.check_image_size(image.shape[1], image.shape[0])
-        found = detect(image, design=design)  # type: ignore[arg-type]
+        found = detect(image, design=design, subpixel=subpixel)  # type: ignore[arg-type]
     except (ImageReadError, DetectorError, CalibrationError) as err:
         message = str(err)
         if not message.startswith(path):
@@ -175,7 +185,7 @@ def _print_table(results: list[dict[str, Any]]) -> None:
 def run(args: argparse.Namespace) -> int:
     """Process every image; exit status 1 if any could not be processed."""
     context = {"camera": args.camera, "diameter_mm": args.diameter_mm}
-    results = [detect_file(path, args.design, **context) for path in args.images]
+    results = [detect_file(path, args.design, args.subpixel, **context) for path in args.images]
     failed = [r for r in results if r["error"] is not None]
     if args.json:
         json.dump({"images": results}, sys.stdout, indent=2)
