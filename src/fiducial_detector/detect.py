@@ -494,22 +494,36 @@ def _fit_profiles(
     if len(seeds) == 0:
         return []
     r0 = design.pose_circle.radius
-    fitted = _ellipses(first, r0)
-    pose = _with_fallback(grey, seeds, design, noise, [fitted[j] for j in rows])
+    near = first.ok[rows] & _plausible_rows(first.params[rows], seeds)
+    fitted = _ellipses(first, r0, rows, near)
+    pose = _with_fallback(grey, seeds, design, noise, fitted, checked=True)
     groups: list[list[Ellipse]] = [[e] if e is not None else [] for e in pose]
     found = [j for j, e in enumerate(pose) if e is not None]
     if not found or len(design.circles) < 2:
         return [tuple(g) for g in groups]
     base = np.array([_parameters(pose[j]) for j in found])  # type: ignore[arg-type]
     blur = first.spread[rows[found]]
+    everything = np.arange(len(found))
     for k in range(1, len(design.circles)):
         inner = base.copy()
         inner[:, 2:4] *= design.circles[k].radius / r0
-        fits = _ellipses(_profile_circle(src, design, k, inner, blur), design.circles[k].radius)
-        for j, e, s in zip(found, fits, inner, strict=True):
-            if e is not None and _plausible(e, s):
+        res = _profile_circle(src, design, k, inner, blur)
+        keep = res.ok & _plausible_rows(res.params, inner)
+        fits = _ellipses(res, design.circles[k].radius, everything, keep)
+        for j, e in zip(found, fits, strict=True):
+            if e is not None:
                 groups[j].append(e)
     return [tuple(g) for g in groups]
+
+
+def _plausible_rows(fits: NDArray[Any], seeds: NDArray[Any]) -> NDArray[np.bool_]:
+    """:func:`_plausible` for ``(n, 5)`` rows of fits and seeds at once (NaN: not plausible)."""
+    tol = 0.25 * seeds[:, 3] + 1.5
+    with np.errstate(invalid="ignore"):
+        near = np.hypot(fits[:, 0] - seeds[:, 0], fits[:, 1] - seeds[:, 1]) < tol
+        near &= np.abs(fits[:, 2] - seeds[:, 2]) < tol
+        near &= np.abs(fits[:, 3] - seeds[:, 3]) < tol
+    return near
 
 
 def _profile_circle(
@@ -537,11 +551,15 @@ def _with_fallback(
     design: FiducialDesign,
     noise: float,
     pose: list[Ellipse | None],
+    *,
+    checked: bool = False,
 ) -> list[Ellipse | None]:
     """Pose ellipses, with the gradient dual-conic fit where a fit failed or strayed from its
-    seed (a seed too far off)."""
+    seed (a seed too far off; ``checked``: the given fits are known to be near)."""
     pose = list(pose)
-    failed = [j for j, e in enumerate(pose) if e is None or not _plausible(e, seeds[j])]
+    failed = [
+        j for j, e in enumerate(pose) if e is None or not (checked or _plausible(e, seeds[j]))
+    ]
     if failed:
         fallback = fit_ellipses(
             grey,
@@ -678,20 +696,28 @@ def _refine_circle(
     return _ellipses(fits, r)
 
 
-def _ellipses(fits: EdgeFits, radius: float) -> list[Ellipse | None]:
-    """Ellipse results of edge fits (None where a fit failed)."""
+def _ellipses(
+    fits: EdgeFits,
+    radius: float,
+    rows: NDArray[np.intp] | None = None,
+    keep: NDArray[np.bool_] | None = None,
+) -> list[Ellipse | None]:
+    """Ellipse results of fits ``rows`` (all by default); None where a fit failed or ``keep``
+    (aligned with ``rows``) is False."""
+    idx = np.arange(len(fits)) if rows is None else rows
+    good = fits.ok[idx] if keep is None else fits.ok[idx] & keep
     out: list[Ellipse | None] = []
-    for j in range(len(fits)):
-        if not fits.ok[j]:
+    for j, g in zip(idx.tolist(), good.tolist(), strict=True):
+        if not g:
             out.append(None)
             continue
-        u, v, a, b, ang = fits.params[j]
+        u, v, a, b, ang = fits.params[j].tolist()
         out.append(
             Ellipse(
-                center_px=(float(u), float(v)),
-                semi_major=float(a),
-                semi_minor=float(b),
-                angle=float(ang),
+                center_px=(u, v),
+                semi_major=a,
+                semi_minor=b,
+                angle=ang,
                 covariance=fits.covariance[j],
                 radius=radius,
                 rms_residual=float(fits.chi[j]),

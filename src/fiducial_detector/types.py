@@ -29,7 +29,9 @@ class Ellipse:
     radius : float
         Nominal radius of the printed circle it was fitted to, as a fraction of the outer radius.
     rms_residual : float
-        Root-mean-square algebraic residual of the fit (dimensionless, for diagnostics).
+        The fit's root-mean-square residual, for diagnostics; its unit is the method's: the
+        dual conic's algebraic residual, the edge model's over the image noise, the edge
+        profiles' edge-position residual in pixels.
     """
 
     center_px: tuple[float, float]
