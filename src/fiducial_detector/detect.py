@@ -13,8 +13,11 @@ Pipeline, designed so that only cheap vectorised work touches every pixel or eve
    here, before any expensive step. Candidates that look like fiducials but read poorly get their
    pose circle fitted and are read again.
 4. Only decoded candidates get sub-pixel ellipses for every printed circle of their design
-   (Ouellet & Hébert dual conic from gradients, :mod:`.ellipse`, step 3), seeded by the coarse
-   ellipse scaled to each circle; the track is read again through the fitted ellipses and the
+   (step 3, then better: edge profiles along the normals, :mod:`.profile_fit`, by default; the
+   maximum-likelihood edge model, :mod:`.edge_fit`, for steep fiducials and with
+   ``subpixel="ml"``; the paper's Ouellet & Hébert dual conic, :mod:`.ellipse`, below 40 px
+   and as the last resort), the pose circle seeded by the coarse ellipse, the others by the
+   fitted pose circle scaled; the track is read again through the fitted ellipses and the
    centre drift they give, and two accepted reads must agree.
 5. A detection centred inside a bigger one (a ``ring`` fiducial's dot and track read as a ``dot``
    fiducial) is dropped.
