@@ -92,8 +92,12 @@ def tile_camera(size_px: int) -> CameraModel:
     return CameraModel.ideal(w, w, F_PX)
 
 
-def base_image(design: str, size_px: int, slant_deg: float) -> tuple[NDArray[np.float64], float]:
-    """Noise-free, unblurred image (fraction of full range) and the true z."""
+def base_image(
+    design: str, size_px: int, slant_deg: float, supersample: int = 64
+) -> tuple[NDArray[np.float64], float]:
+    """Noise-free, unblurred image (fraction of full range) and the true z. Edge pixels get
+    ``supersample``^2 samples: the rendering error, fixed across a case's noise images, stays
+    near 0.001 px (at 8 it reaches a few thousandths, a bias Table 2 would count)."""
     z = F_PX * DIAMETER_MM / size_px
     cam = tile_camera(size_px)
     target = Target(
@@ -103,7 +107,7 @@ def base_image(design: str, size_px: int, slant_deg: float) -> tuple[NDArray[np.
         rotation_from_slant_tilt(np.radians(slant_deg)),
         np.array([0, 0, z]),
     )
-    scene = render(cam, [target], dtype=np.uint16)
+    scene = render(cam, [target], dtype=np.uint16, supersample=supersample)
     return scene.image.astype(np.float64) / 65535.0, z
 
 
