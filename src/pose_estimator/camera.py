@@ -117,12 +117,16 @@ class CameraModel:
         n = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         return self.project(np.column_stack([n, np.ones(len(n))]))
 
-    def undistort_normalized(self, uv: ArrayLike) -> NDArray[np.float64]:
+    def undistort_normalized(
+        self, uv: ArrayLike, guess: ArrayLike | None = None
+    ) -> NDArray[np.float64]:
         """Map distorted pixel coordinates to ideal normalised coordinates ``(x/z, y/z)``.
 
         Vectorised Newton iterations on the lens model (analytic Jacobian), converged to 1e-14
         (far below pixel noise), not OpenCV's default five fixed-point iterations; points where
-        Newton does not converge fall back to OpenCV's iterative inverse.
+        Newton does not converge fall back to OpenCV's iterative inverse. ``guess`` (``(N, 2)``
+        normalised coordinates near the answer) only saves iterations: the converged result is
+        the same.
         """
         px = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         xd = (px - self.K[:2, 2]) / np.diag(self.K)[:2]
@@ -130,32 +134,40 @@ class CameraModel:
             return xd
         D = np.zeros(8)
         D[: len(self.D)] = self.D
-        k1, k2, p1, p2, k3, k4, k5, k6 = D
-        xy = xd.copy()
+        k1, k2, p1, p2, k3, k4, k5, k6 = (float(d) for d in D)
+        rational = bool(k4 or k5 or k6)
+        # Contiguous components: every operation below runs over one long array.
+        x0, y0 = np.ascontiguousarray(xd[:, 0]), np.ascontiguousarray(xd[:, 1])
+        start = xd if guess is None else np.asarray(guess, dtype=np.float64).reshape(-1, 2)
+        x, y = start[:, 0].copy(), start[:, 1].copy()
         for _ in range(30):
-            x, y = xy[:, 0], xy[:, 1]
-            r2 = x * x + y * y
-            a = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            b = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-            da = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-            db = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
-            rad = a / b
-            drad = (da * b - a * db) / (b * b)
-            fx = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd[:, 0]
-            fy = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - xd[:, 1]
-            j11 = rad + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
-            j12 = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
-            j22 = rad + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
+            xx, yy, xy = x * x, y * y, x * y
+            r2 = xx + yy
+            rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+            if rational:
+                b = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+                db = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+                drad = (drad * b - rad * db) / (b * b)
+                rad = rad / b
+            fx = x * rad + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx) - x0
+            fy = y * rad + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy - y0
+            drad2 = 2.0 * drad
+            j11 = rad + drad2 * xx + 2.0 * p1 * y + 6.0 * p2 * x
+            j12 = drad2 * xy + 2.0 * p1 * x + 2.0 * p2 * y
+            j22 = rad + drad2 * yy + 6.0 * p1 * y + 2.0 * p2 * x
             det = j11 * j22 - j12 * j12
-            xy[:, 0] -= (j22 * fx - j12 * fy) / det
-            xy[:, 1] -= (j11 * fy - j12 * fx) / det
-            if np.max(np.abs(fx) + np.abs(fy)) < 1e-14:
+            x -= (j22 * fx - j12 * fy) / det
+            y -= (j11 * fy - j12 * fx) / det
+            resid = np.abs(fx) + np.abs(fy)
+            if resid.max() < 1e-14:
                 break
+        xy_out = np.column_stack([x, y])
         # The residual before the last step bounds the error after it (quadratic convergence).
-        bad = ~np.all(np.isfinite(xy), axis=1) | ~(np.abs(fx) + np.abs(fy) < 1e-9)
+        bad = ~(np.isfinite(x) & np.isfinite(y)) | ~(resid < 1e-9)
         if np.any(bad):
-            xy[bad] = self._undistort_opencv(px[bad])
-        return xy
+            xy_out[bad] = self._undistort_opencv(px[bad])
+        return xy_out
 
     def _undistort_opencv(self, px: NDArray[np.float64]) -> NDArray[np.float64]:
         """OpenCV's iterative inverse (fallback), normalised coordinates."""
@@ -170,10 +182,16 @@ class CameraModel:
             out = cv2.undistortPoints(src, self.K, self.D, None, np.eye(3), np.eye(3), criteria)
         return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
-    def undistort_pixels(self, uv: ArrayLike) -> NDArray[np.float64]:
-        """Map distorted pixels to the pixels an ideal camera with the same ``K`` sees."""
-        n = self.undistort_normalized(uv)
-        return n * np.diag(self.K)[:2] + self.K[:2, 2]
+    def undistort_pixels(
+        self, uv: ArrayLike, guess: ArrayLike | None = None
+    ) -> NDArray[np.float64]:
+        """Map distorted pixels to the pixels an ideal camera with the same ``K`` sees.
+
+        ``guess`` (``(N, 2)`` ideal pixels near the answer) only saves Newton iterations.
+        """
+        f, c = np.diag(self.K)[:2], self.K[:2, 2]
+        start = None if guess is None else (np.asarray(guess, dtype=np.float64) - c) / f
+        return self.undistort_normalized(uv, start) * f + c
 
     @classmethod
     def from_camera_info(

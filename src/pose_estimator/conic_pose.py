@@ -22,6 +22,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .batched import spd_inverse
+
 F64 = NDArray[np.float64]
 
 
@@ -40,22 +42,35 @@ def conic_from_params(params: ArrayLike) -> F64:
         inside-negative (the centre gives ``-1``).
     """
     p = np.asarray(params, dtype=np.float64)
-    s11, s12, s22 = p[..., 2], p[..., 3], p[..., 4]
+    q11, q12, q22, q13, q23, q33 = conic_entries(*np.moveaxis(p, -1, 0))
+    out = np.empty((*p.shape[:-1], 3, 3))
+    out[..., 0, 0] = q11
+    out[..., 0, 1] = out[..., 1, 0] = q12
+    out[..., 1, 1] = q22
+    out[..., 0, 2] = out[..., 2, 0] = q13
+    out[..., 1, 2] = out[..., 2, 1] = q23
+    out[..., 2, 2] = q33
+    return out
+
+
+def conic_entries(
+    u: F64, v: F64, s11: F64, s12: F64, s22: F64
+) -> tuple[F64, F64, F64, F64, F64, F64]:
+    """Entries ``(c11, c12, c22, c13, c23, c33)`` of the conics of :func:`conic_from_params`.
+
+    Elementwise over arrays of any (equal or broadcastable) shape, for callers that keep the
+    parameters as separate components.
+    """
     det = s11 * s22 - s12 * s12
     # Q = S^-2 = (S^-1)^2 with S^-1 = adj(S) / det.
     i11, i12, i22 = s22 / det, -s12 / det, s11 / det
     q11 = i11 * i11 + i12 * i12
     q12 = i11 * i12 + i12 * i22
     q22 = i12 * i12 + i22 * i22
-    u, v = p[..., 0], p[..., 1]
-    out = np.empty((*p.shape[:-1], 3, 3))
-    out[..., 0, 0] = q11
-    out[..., 0, 1] = out[..., 1, 0] = q12
-    out[..., 1, 1] = q22
-    out[..., 0, 2] = out[..., 2, 0] = -(q11 * u + q12 * v)
-    out[..., 1, 2] = out[..., 2, 1] = -(q12 * u + q22 * v)
-    out[..., 2, 2] = q11 * u * u + 2.0 * q12 * u * v + q22 * v * v - 1.0
-    return out
+    q13 = -(q11 * u + q12 * v)
+    q23 = -(q12 * u + q22 * v)
+    q33 = q11 * u * u + 2.0 * q12 * u * v + q22 * v * v - 1.0
+    return q11, q12, q22, q13, q23, q33
 
 
 def params_from_conic(conic: ArrayLike) -> F64:
@@ -82,6 +97,26 @@ def params_from_entries(a: F64, b: F64, c: F64, d: F64, e: F64, f: F64) -> F64:
 
     Returns NaN rows where a conic is not a real ellipse.
     """
+    comps, bad = _ellipse_components(a, b, c, d, e, f)
+    out = np.stack(comps, axis=-1)
+    out[bad] = np.nan
+    return out
+
+
+def params_from_entries_t(a: F64, b: F64, c: F64, d: F64, e: F64, f: F64) -> F64:
+    """:func:`params_from_entries` with the parameter axis first: ``(5, ...)``."""
+    comps, bad = _ellipse_components(a, b, c, d, e, f)
+    out = np.empty((5, *np.shape(comps[0])))
+    out[0], out[1], out[2], out[3], out[4] = comps
+    if bad.any():
+        out[:, bad] = np.nan
+    return out
+
+
+def _ellipse_components(
+    a: F64, b: F64, c: F64, d: F64, e: F64, f: F64
+) -> tuple[tuple[F64, F64, F64, F64, F64], NDArray[np.bool_]]:
+    """The five ellipse parameters of conic entries, and where the conic is no real ellipse."""
     det2 = a * c - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
         u = (b * e - c * d) / det2
@@ -93,10 +128,11 @@ def params_from_entries(a: F64, b: F64, c: F64, d: F64, e: F64, f: F64) -> F64:
         detm = m11 * m22 - m12 * m12
         root = np.sqrt(detm)
         t = np.sqrt(m11 + m22 + 2.0 * root)
-        out = np.stack([u, v, (m11 + root) / t, m12 / t, (m22 + root) / t], axis=-1)
-    bad = ~((det2 > 0) & (m11 > 0) & (detm > 0) & np.all(np.isfinite(out), axis=-1))
-    out[bad] = np.nan
-    return out
+        comps = (u, v, (m11 + root) / t, m12 / t, (m22 + root) / t)
+    # Every component is finite iff u, v and t are (t > 0 where the others hold).
+    finite = np.isfinite(u + v + t)
+    bad = ~((det2 > 0) & (m11 > 0) & (detm > 0) & finite)
+    return comps, bad
 
 
 def circle_params(center: ArrayLike, normal: ArrayLike, radius: ArrayLike) -> F64:
@@ -123,14 +159,27 @@ def circle_params(center: ArrayLike, normal: ArrayLike, radius: ArrayLike) -> F6
     c = np.asarray(center, dtype=np.float64)
     n = np.asarray(normal, dtype=np.float64)
     r = np.asarray(radius, dtype=np.float64)
-    c0, c1, c2 = c[..., 0], c[..., 1], c[..., 2]
-    n0, n1, n2 = n[..., 0], n[..., 1], n[..., 2]
+    return params_from_entries(*_circle_cone(np.moveaxis(c, -1, 0), np.moveaxis(n, -1, 0), r))
+
+
+def circle_params_t(center: F64, normal: F64, radius: F64) -> F64:
+    """:func:`circle_params` with the component axes first.
+
+    ``center``, ``normal`` ``(3, ...)`` and ``radius`` ``(...)`` give ``(5, ...)``.
+    """
+    return params_from_entries_t(*_circle_cone(center, normal, radius))
+
+
+def _circle_cone(c: F64, n: F64, r: F64) -> tuple[F64, F64, F64, F64, F64, F64]:
+    """Entries of the cone through circles (centres and normals ``(3, ...)``, see circle_params)."""
+    c0, c1, c2 = c[0], c[1], c[2]
+    n0, n1, n2 = n[0], n[1], n[2]
     g = c0 * n0 + c1 * n1 + c2 * n2
     cc = c0 * c0 + c1 * c1 + c2 * c2
     g2 = g * g
     r2 = r * r
     # Entry (i, j) = P_ij - r^2 n_i n_j with P computed once per centre (radius-free part).
-    return params_from_entries(
+    return (
         (g2 - 2.0 * g * c0 * n0 + cc * n0 * n0) - r2 * (n0 * n0),
         (-g * (c0 * n1 + n0 * c1) + cc * n0 * n1) - r2 * (n0 * n1),
         (g2 - 2.0 * g * c1 * n1 + cc * n1 * n1) - r2 * (n1 * n1),
@@ -180,7 +229,8 @@ def circle_pose(cone: ArrayLike, radius_mm: ArrayLike) -> tuple[F64, F64]:
     Parameters
     ----------
     cone : (..., 3, 3) array_like
-        Conic of the circle's image in *normalised* coordinates, ``K^T C K`` (any scale or sign).
+        Conic of the circle's image in *normalised* coordinates, ``K^T C K`` (any sign, any
+        scale with entries within ~1e+-100).
     radius_mm : (...) array_like
         Radius of the printed circle.
 
@@ -197,38 +247,186 @@ def circle_pose(cone: ArrayLike, radius_mm: ArrayLike) -> tuple[F64, F64]:
     ``(sqrt(l1-l2) e1 +- sqrt(l2-l3) e3) . x = k``; on such a plane the cone equation reduces to a
     sphere through the origin, whose section has radius ``|k| sqrt(-l1 l3) / (l2 s)`` with
     ``s = sqrt(l1 - l3)``, which gives ``k`` from the known radius. Degenerate cones give NaN.
+    The eigen-decomposition is closed form (:func:`_circle_pose_core`).
     """
     Q = np.asarray(cone, dtype=np.float64)
     Q = 0.5 * (Q + np.swapaxes(Q, -1, -2))
     r = np.asarray(radius_mm, dtype=np.float64)
-    w, V = np.linalg.eigh(Q)  # ascending
-    # Two eigenvalues of one sign: make them positive (the product of all three is then negative).
-    flip = np.linalg.det(Q) > 0
-    w = np.where(flip[..., None], -w[..., ::-1], w)
-    V = np.where(flip[..., None, None], V[..., ::-1], V)
-    l3, l2, l1 = w[..., 0], w[..., 1], w[..., 2]
-    e3, e1 = V[..., :, 0], V[..., :, 2]
+    q = (Q[..., 0, 0], Q[..., 0, 1], Q[..., 1, 1], Q[..., 0, 2], Q[..., 1, 2], Q[..., 2, 2])
+    # Sign: two positive eigenvalues (negative determinant). -adj(Q) = |det Q| Q^-1 stands in
+    # for the inverse (no division by a determinant that may be all rounding).
+    adj = _adjugate_columns(q[0], q[2], q[5], q[1], q[3], q[4])
+    det = q[0] * adj[0][0] + q[1] * adj[0][1] + q[3] * adj[0][2]
+    f = np.where(det > 0, -1.0, 1.0)
+    # adj(f Q) = f^2 adj(Q) = adj(Q).
+    inv = (-adj[0][0], -adj[0][1], -adj[1][1], -adj[0][2], -adj[1][2], -adj[2][2])
+    qf = (q[0] * f, q[1] * f, q[2] * f, q[3] * f, q[4] * f, q[5] * f)
+    centers, normals = _circle_pose_core(qf, inv, r, exact_inverse=False)
+    return np.moveaxis(centers, (0, 1), (-1, -2)), np.moveaxis(normals, (0, 1), (-1, -2))
+
+
+def circle_pose_t(params: F64, radius_mm: F64) -> tuple[F64, F64]:
+    """:func:`circle_pose` from the circle's image ellipse, components first.
+
+    Parameters
+    ----------
+    params : (5, ...) ndarray
+        Ellipses ``(u, v, s11, s12, s22)`` in *normalised* coordinates, parameters first.
+    radius_mm : (...) ndarray
+
+    Returns
+    -------
+    centers, normals : (3, 2, ...) ndarray
+        Components first, then the two solutions.
+
+    Notes
+    -----
+    The cone of :func:`conic_from_params` is ``Q = [[A, -A m], [-m^T A, m^T A m - 1]]`` with
+    ``A = S^-2``; its inverse is exactly ``[[S^2 - m m^T, -m], [-m^T, -1]]``, free of the
+    rounding an inversion would add, and used for the lone eigenvector (see
+    :func:`_circle_pose_core`).
+    """
+    u, v, s11, s12, s22 = params[0], params[1], params[2], params[3], params[4]
+    inv = (
+        s11 * s11 + s12 * s12 - u * u,
+        s12 * (s11 + s22) - u * v,
+        s12 * s12 + s22 * s22 - v * v,
+        -u,
+        -v,
+        np.full_like(u, -1.0),
+    )
+    return _circle_pose_core(conic_entries(u, v, s11, s12, s22), inv, radius_mm, exact_inverse=True)
+
+
+def _circle_pose_core(
+    q: tuple[F64, F64, F64, F64, F64, F64],
+    inv: tuple[F64, F64, F64, F64, F64, F64],
+    radius_mm: F64,
+    *,
+    exact_inverse: bool,
+) -> tuple[F64, F64]:
+    """Both circle poses from a cone ``q`` and its inverse ``inv``, entries
+    ``(11, 12, 22, 13, 23, 33)``, signed so that two eigenvalues are positive.
+
+    ``inv`` may be any positive multiple of the inverse when ``exact_inverse`` is False; ``l3`` is
+    then the Rayleigh quotient of ``e3`` instead of the reciprocal of the inverse's eigenvalue.
+
+    Closed-form eigen-decomposition, far cheaper than a batched LAPACK call on 3x3 matrices. The
+    lone-sign eigenvalue ``l3`` of the cone of a small image is the smallest in magnitude, so
+    ``1 / l3`` is the dominant, isolated eigenvalue of the inverse: the trigonometric solution of
+    its characteristic cubic (Smith 1961) gives it to rounding, and its eigenvector ``e3`` is the
+    largest column of ``adj(Q^-1 - I / l3)``. Then ``l1``, ``l2`` and ``e1`` come from the 2x2
+    restriction of ``Q`` to the plane orthogonal to ``e3``, which gives ``l1 - l2`` without
+    cancellation and a stable ``e1`` even when ``l1 ~ l2`` (fronto-parallel circles). Against
+    ground truth this is at least as accurate as ``numpy.linalg.eigh`` of ``Q``, also for far,
+    89 deg circles whose ``l2`` and ``l3`` are tiny against ``l1``.
+    """
+    r = np.asarray(radius_mm, dtype=np.float64)
+    a11, a12, a22, a13, a23, a33 = q
+    b11, b12, b22, b13, b23, b33 = inv
     with np.errstate(invalid="ignore", divide="ignore"):
-        a = np.sqrt(np.clip(l1 - l2, 0.0, None))
-        b = np.sqrt(np.clip(l2 - l3, 0.0, None))
+        # Smallest (most negative) eigenvalue mu of the inverse, trigonometric form.
+        m = (b11 + b22 + b33) / 3.0
+        c11, c22, c33 = b11 - m, b22 - m, b33 - m
+        p = np.sqrt(
+            (c11 * c11 + c22 * c22 + c33 * c33 + 2.0 * (b12 * b12 + b13 * b13 + b23 * b23)) / 6.0
+        )
+        detc = c11 * (c22 * c33 - b23 * b23) - b12 * (b12 * c33 - b23 * b13)
+        detc += b13 * (b12 * b23 - c22 * b13)
+        phi = np.arccos(np.minimum(np.maximum(0.5 * detc / (p * p * p), -1.0), 1.0)) / 3.0
+        mu = m + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+        # e3: the largest column of adj(B - mu I).
+        x, y, z = _adjugate_columns(b11 - mu, b22 - mu, b33 - mu, b12, b13, b23)
+        xx = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
+        yy = y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
+        zz = z[0] * z[0] + z[1] * z[1] + z[2] * z[2]
+        use_y = yy > xx
+        size = np.where(use_y, yy, xx)
+        use_z = zz > size
+        size = np.where(use_z, zz, size)
+        inv_size = 1.0 / np.sqrt(size)
+        e3 = (
+            np.where(use_z, z[0], np.where(use_y, y[0], x[0])) * inv_size,
+            np.where(use_z, z[1], np.where(use_y, y[1], x[1])) * inv_size,
+            np.where(use_z, z[2], np.where(use_y, y[2], x[2])) * inv_size,
+        )
+        l3 = 1.0 / mu if exact_inverse else _quadratic_form(a11, a12, a22, a13, a23, a33, e3)
+        # l1, l2, e1: symmetric 2x2 eigenproblem in the plane orthogonal to e3.
+        u, v = plane_basis(e3)
+        au = (a11 * u[0] + a12 * u[1] + a13 * u[2], a12 * u[0] + a22 * u[1] + a23 * u[2])
+        au2 = a13 * u[0] + a23 * u[1] + a33 * u[2]
+        muu = au[0] * u[0] + au[1] * u[1] + au2 * u[2]
+        muv = au[0] * v[0] + au[1] * v[1] + au2 * v[2]
+        mvv = _quadratic_form(a11, a12, a22, a13, a23, a33, v)
+        half = np.hypot(0.5 * (muu - mvv), muv)
+        l2 = 0.5 * (muu + mvv) - half
+        l1 = l2 + 2.0 * half
+        theta = 0.5 * np.arctan2(2.0 * muv, muu - mvv)
+        cos, sin = np.cos(theta), np.sin(theta)
+        a = np.sqrt(2.0 * half)
+        b = np.sqrt(np.maximum(l2 - l3, 0.0))
         s = np.sqrt(l1 - l3)
         k = r * l2 * s / np.sqrt(-l1 * l3)
-        centers = np.empty((*w.shape[:-1], 2, 3))
-        normals = np.empty_like(centers)
-        for i, sign in enumerate((1.0, -1.0)):
-            m = a[..., None] * e1 + sign * b[..., None] * e3  # plane m . x = k, |m| = s
-            n = m / s[..., None]
-            # Sphere |x|^2 + (k/l2) (a x1 - b x3) = 0 has centre cs = -(k / 2 l2) p.
-            p = a[..., None] * e1 - sign * b[..., None] * e3
-            cs = -(k / (2.0 * l2))[..., None] * p
-            dist = (np.einsum("...i,...i->...", n, cs) - k / s)[..., None]
-            c = cs - dist * n
-            # Both (k, c) and (-k, -c) are solutions; keep the one in front of the camera.
-            c = np.where(c[..., 2:3] < 0, -c, c)
-            n = np.where(np.einsum("...i,...i->...", n, c)[..., None] > 0, -n, n)
-            centers[..., i, :] = c
-            normals[..., i, :] = n
-    return centers, normals
+        # a e1 and b e3, then both signs along a second axis.
+        ab = np.empty((2, 3, *np.shape(k)))
+        for i in range(3):
+            ab[0, i] = a * (cos * u[i] + sin * v[i])
+            ab[1, i] = b * e3[i]
+        ae1 = ab[0][:, None]
+        be3 = ab[1][:, None] * np.array([1.0, -1.0]).reshape(2, *([1] * np.ndim(k)))
+        n = (ae1 + be3) / s  # plane m . x = k with m = a e1 +- b e3, |m| = s
+        # Sphere |x|^2 + (k/l2) (a x1 -+ b x3) = 0 has centre cs = -(k / 2 l2) (a e1 -+ b e3).
+        cs = -(k / (2.0 * l2)) * (ae1 - be3)
+        dist = (n[0] * cs[0] + n[1] * cs[1] + n[2] * cs[2]) - k / s
+        c = cs - dist * n
+        # Both (k, c) and (-k, -c) are solutions; keep the one in front of the camera.
+        c *= np.where(c[2] < 0, -1.0, 1.0)
+        n *= np.where(n[0] * c[0] + n[1] * c[1] + n[2] * c[2] > 0, -1.0, 1.0)
+    return c, n
+
+
+def _adjugate_columns(
+    d1: F64, d2: F64, d3: F64, a12: F64, a13: F64, a23: F64
+) -> tuple[tuple[F64, F64, F64], ...]:
+    """Columns of the adjugate of ``[[d1, a12, a13], [a12, d2, a23], [a13, a23, d3]]``.
+
+    They are the cross products of pairs of its rows; for a matrix ``A - l I`` with ``l`` near
+    a simple eigenvalue each is parallel to that eigenvector.
+    """
+    return (
+        (d2 * d3 - a23 * a23, a23 * a13 - a12 * d3, a12 * a23 - d2 * a13),
+        (a13 * a23 - a12 * d3, d1 * d3 - a13 * a13, a12 * a13 - d1 * a23),
+        (a12 * a23 - a13 * d2, a13 * a12 - d1 * a23, d1 * d2 - a12 * a12),
+    )
+
+
+def _quadratic_form(
+    a11: F64, a12: F64, a22: F64, a13: F64, a23: F64, a33: F64, x: tuple[F64, F64, F64]
+) -> F64:
+    """``x^T A x`` for symmetric ``A`` given by its entries and ``x`` by its components."""
+    x0, x1, x2 = x
+    return (
+        a11 * x0 * x0
+        + a22 * x1 * x1
+        + a33 * x2 * x2
+        + 2.0 * (a12 * x0 * x1 + a13 * x0 * x2 + a23 * x1 * x2)
+    )
+
+
+def plane_basis(n: tuple[F64, F64, F64]) -> tuple[tuple[F64, F64, F64], tuple[F64, F64, F64]]:
+    """Two unit vectors orthogonal to each unit vector ``n`` and to each other.
+
+    Vectors are given and returned by their components ``(x, y, z)`` (arrays of any shape).
+    """
+    n0, n1, n2 = n
+    use_x = np.abs(n0) < 0.9
+    # e1 = n x (1, 0, 0) = (0, n2, -n1), or n x (0, 1, 0) = (-n2, 0, n0).
+    e0 = np.where(use_x, 0.0, -n2)
+    e1 = np.where(use_x, n2, 0.0)
+    e2 = np.where(use_x, -n1, n0)
+    inv = 1.0 / np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    e0, e1, e2 = e0 * inv, e1 * inv, e2 * inv
+    return (e0, e1, e2), (n1 * e2 - n2 * e1, n2 * e0 - n0 * e2, n0 * e1 - n1 * e0)
 
 
 def fit_conics(points: ArrayLike) -> F64:
@@ -243,22 +441,55 @@ def fit_conics(points: ArrayLike) -> F64:
     -------
     (..., 3, 3) ndarray
         Symmetric conics (exact when the points lie on a conic).
+
+    Notes
+    -----
+    The conic ``c`` minimising ``|A c|`` (``|c| = 1``) over the design matrix ``A`` with rows
+    ``(x^2, xy, y^2, x, y, 1)`` is the eigenvector of the smallest eigenvalue of ``A^T A``. That
+    6x6 matrix is assembled from the 15 moments ``sum x^a y^b`` (``a + b <= 4``) and the
+    eigenvector found by inverse iteration, all batched with the matrix axes first: the same
+    solution as a batched SVD of ``A`` at a fraction of its cost. Normalisation keeps ``A^T A``
+    well conditioned apart from its (near-)null direction, which is the one sought.
     """
     P = np.asarray(points, dtype=np.float64)
     mean = P.mean(axis=-2, keepdims=True)
     scale = np.sqrt(np.mean(np.sum((P - mean) ** 2, axis=-1), axis=-1))[..., None, None]
     x = (P - mean) / scale
-    X, Y = x[..., 0], x[..., 1]
-    A = np.stack([X * X, X * Y, Y * Y, X, Y, np.ones_like(X)], axis=-1)
-    _, _, vt = np.linalg.svd(A, full_matrices=False)
-    c = vt[..., -1, :]
+    # Points first, batch last, for the moment sums.
+    X = np.ascontiguousarray(np.moveaxis(x[..., 0], -1, 0))
+    Y = np.ascontiguousarray(np.moveaxis(x[..., 1], -1, 0))
+    xp = [np.ones_like(X), X, X * X]
+    yp = [xp[0], Y, Y * Y]
+    xp += [xp[2] * X, xp[2] * xp[2]]
+    yp += [yp[2] * Y, yp[2] * yp[2]]
+    moment = {
+        (a, b): np.sum(xp[a] * yp[b], axis=0) if a or b else np.full(X.shape[1:], X.shape[0] * 1.0)
+        for a in range(5)
+        for b in range(5 - a)
+    }
+    mono = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))
+    M = np.empty((6, 6, *X.shape[1:]))
+    for i, (ai, bi) in enumerate(mono):
+        for j, (aj, bj) in enumerate(mono[i:], start=i):
+            M[i, j] = M[j, i] = moment[(ai + aj, bi + bj)]
+    # Inverse iteration. The shift keeps an exact fit (a singular A^T A) invertible without
+    # moving the eigenvectors; the convergence factor per step is (l6 + shift) / (l5 + shift).
+    shift = 1e-13 * (M[0, 0] + M[1, 1] + M[2, 2] + M[3, 3] + M[4, 4] + M[5, 5])
+    for i in range(6):
+        M[i, i] += shift
+    Minv = spd_inverse(M)
+    c = np.empty((6, *X.shape[1:]))
+    c[:] = np.array([1.0, 0.0, 1.0, 0.0, 0.0, -1.0]).reshape(6, *([1] * (c.ndim - 1)))
+    for _ in range(4):
+        c = np.einsum("ij...,j...->i...", Minv, c)
+        c /= np.sqrt(np.sum(c * c, axis=0))
     Cn = np.empty((*P.shape[:-2], 3, 3))
-    Cn[..., 0, 0] = c[..., 0]
-    Cn[..., 0, 1] = Cn[..., 1, 0] = 0.5 * c[..., 1]
-    Cn[..., 1, 1] = c[..., 2]
-    Cn[..., 0, 2] = Cn[..., 2, 0] = 0.5 * c[..., 3]
-    Cn[..., 1, 2] = Cn[..., 2, 1] = 0.5 * c[..., 4]
-    Cn[..., 2, 2] = c[..., 5]
+    Cn[..., 0, 0] = c[0]
+    Cn[..., 0, 1] = Cn[..., 1, 0] = 0.5 * c[1]
+    Cn[..., 1, 1] = c[2]
+    Cn[..., 0, 2] = Cn[..., 2, 0] = 0.5 * c[3]
+    Cn[..., 1, 2] = Cn[..., 2, 1] = 0.5 * c[4]
+    Cn[..., 2, 2] = c[5]
     # Undo the normalisation x = T p: C = T^T Cn T.
     T = np.zeros((*P.shape[:-2], 3, 3))
     s = 1.0 / scale[..., 0, 0]
@@ -279,13 +510,10 @@ def ellipse_points(params: ArrayLike, count: int) -> F64:
     """
     p = np.asarray(params, dtype=np.float64)
     t = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
-    w = np.stack([np.cos(t), np.sin(t)], axis=-1)  # (count, 2)
-    S = np.empty((*p.shape[:-1], 2, 2))
-    S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1] = (
-        p[..., 2],
-        p[..., 3],
-        p[..., 3],
-        p[..., 4],
-    )
-    out: F64 = p[..., None, :2] + np.einsum("...ij,mj->...mi", S, w)
+    cos, sin = np.cos(t), np.sin(t)
+    u, v, s11, s12, s22 = (p[..., i, None] for i in range(5))
+    out = np.empty((*p.shape[:-1], count, 2))
+    # c + S (cos t, sin t) with S = [[s11, s12], [s12, s22]].
+    out[..., 0] = u + s11 * cos + s12 * sin
+    out[..., 1] = v + s12 * cos + s22 * sin
     return out

@@ -34,22 +34,24 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import chain
+from operator import attrgetter
 
 import numpy as np
 from numpy.typing import NDArray
 
 from fiducial_detector.types import FiducialDetection
 
+from .batched import spd_inverse
 from .camera import CameraModel
 from .conic_pose import (
-    axes_to_params_jacobian,
-    circle_params,
-    circle_pose,
-    conic_from_params,
+    circle_params_t,
+    circle_pose_t,
     ellipse_points,
     fit_conics,
     params_from_axes,
     params_from_conic,
+    plane_basis,
 )
 from .errors import PoseError
 from .types import FiducialPose
@@ -108,20 +110,12 @@ def estimate(
         return []
     obs, cov, radius = detections_to_arrays(dets, 0.5 * float(diameter_mm))
     result = estimate_arrays(obs, cov, radius, camera)
-    poses = []
-    for i, d in enumerate(dets):
-        if not result.valid[i]:
-            continue
-        poses.append(
-            FiducialPose(
-                code=d.code,
-                position_mm=result.position_mm[i],
-                normal=result.normal[i],
-                covariance_mm2=result.covariance_mm2[i],
-                detection=d,
-            )
-        )
-    return poses
+    pos, nrm, cvm = result.position_mm, result.normal, result.covariance_mm2
+    if not result.valid.all():
+        keep = np.flatnonzero(result.valid)
+        dets = [dets[i] for i in keep]
+        pos, nrm, cvm = pos[keep], nrm[keep], cvm[keep]
+    return FiducialPose.from_rows([d.code for d in dets], pos, nrm, cvm, dets)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -158,42 +152,92 @@ def detections_to_arrays(
     """Observation arrays ``(N, K, 5)``, covariances ``(N, K, 5, 5)`` and radii ``(N, K)`` (mm).
 
     Missing circles (fewer ellipses than ``K``) get NaN observations.
+
+    Raises
+    ------
+    PoseError
+        If an ellipse's centre is not a pair of numbers.
     """
     n = len(dets)
-    counts = [len(d.ellipses) for d in dets]
+    per_det = list(map(attrgetter("ellipses"), dets))
+    counts = list(map(len, per_det))
     kmax = max(counts)
-    ells = [e for d in dets for e in d.ellipses]
-    rows = np.array(
-        [(*e.center_px, e.semi_major, e.semi_minor, e.angle, e.radius) for e in ells],
-        dtype=np.float64,
+    ells = list(chain.from_iterable(per_det))
+    m = len(ells)
+    # Flat iterators into np.fromiter: far cheaper than nested sequences into np.array.
+    centers = np.fromiter(chain.from_iterable(map(attrgetter("center_px"), ells)), np.float64)
+    if centers.size != 2 * m:
+        raise PoseError("every ellipse centre must be a (u, v) pair")
+    shape = np.stack(
+        [
+            np.fromiter(map(attrgetter(name), ells), np.float64, count=m)
+            for name in ("semi_major", "semi_minor", "angle", "radius")
+        ],
+        axis=-1,
     )
-    try:
-        covs = np.array([e.covariance for e in ells], dtype=np.float64).reshape(-1, 5, 5)
-    except ValueError:
-        covs = np.stack([_cov_or_nan(e.covariance) for e in ells])
+    covs = _gather_covariances([e.covariance for e in ells])
     if min(counts) == kmax:
-        raw = rows[:, :5].reshape(n, kmax, 5)
+        uv = centers.reshape(n, kmax, 2)
+        rows = shape.reshape(n, kmax, 4)
         rawcov = covs.reshape(n, kmax, 5, 5)
-        radius = rows[:, 5].reshape(n, kmax) * outer_radius_mm
     else:
-        raw = np.full((n, kmax, 5), np.nan)
+        uv = np.full((n, kmax, 2), np.nan)
+        rows = np.full((n, kmax, 4), np.nan)
         rawcov = np.full((n, kmax, 5, 5), np.nan)
-        radius = np.full((n, kmax), np.nan)
         det_index = np.repeat(np.arange(n), counts)
         circle_index = np.concatenate([np.arange(c) for c in counts])
-        raw[det_index, circle_index] = rows[:, :5]
+        uv[det_index, circle_index] = centers.reshape(m, 2)
+        rows[det_index, circle_index] = shape
         rawcov[det_index, circle_index] = covs
-        radius[det_index, circle_index] = rows[:, 5] * outer_radius_mm
-    obs = params_from_axes(raw[..., 0], raw[..., 1], raw[..., 2], raw[..., 3], raw[..., 4])
-    J = axes_to_params_jacobian(raw[..., 2], raw[..., 3], raw[..., 4])
-    cov = J @ rawcov @ np.swapaxes(J, -1, -2)
-    return obs, cov, radius
+    a, b, angle = rows[..., 0], rows[..., 1], rows[..., 2]
+    obs = params_from_axes(uv[..., 0], uv[..., 1], a, b, angle)
+    cov = _axes_to_params_covariance(rawcov, a, b, angle)
+    return obs, cov, rows[..., 3] * outer_radius_mm
+
+
+def _gather_covariances(covs: list[NDArray[np.float64]]) -> F64:
+    """``(M, 5, 5)`` float64 covariances; NaNs for those without the shape ``(5, 5)``."""
+    m = len(covs)
+    try:
+        # One concatenation of (5, 5) blocks; any other shape mixes fail here or in the size.
+        out = np.concatenate(covs, dtype=np.float64)
+        if out.shape in ((5 * m, 5), (25 * m,)):
+            return out.reshape(m, 5, 5)
+    except ValueError:
+        pass
+    return np.stack([_cov_or_nan(c) for c in covs])
 
 
 def _cov_or_nan(cov: object) -> F64:
     """A 5x5 covariance as float64, or NaNs when it has the wrong shape."""
     c = np.asarray(cov, dtype=np.float64)
     return c if c.shape == (5, 5) else np.full((5, 5), np.nan)
+
+
+def _axes_to_params_covariance(cov: F64, a: F64, b: F64, angle: F64) -> F64:
+    """Covariances of ``(u, v, a, b, angle)`` carried to ``(u, v, s11, s12, s22)``: ``J C J^T``.
+
+    ``cov`` is ``(N, K, 5, 5)``. ``J`` (:func:`pose_estimator.conic_pose.axes_to_params_jacobian`)
+    is the identity on the centre, so only its 3x3 shape block ``G`` is applied, blockwise, in
+    the layout :func:`estimate_arrays` works in: ``(5, 5, K, N)``.
+    """
+    c, s = np.cos(angle.T), np.sin(angle.T)
+    a, b = a.T, b.T
+    d = a - b
+    G = np.empty((3, 3, *a.shape))
+    G[0, 0], G[0, 1], G[0, 2] = c * c, s * s, -2.0 * c * s * d
+    G[1, 0], G[1, 1], G[1, 2] = c * s, -c * s, d * (c * c - s * s)
+    G[2, 0], G[2, 1], G[2, 2] = s * s, c * c, 2.0 * c * s * d
+    C = np.ascontiguousarray(cov.transpose(2, 3, 1, 0))
+    out = np.empty((5, 5, *a.shape))
+    out[:2, :2] = C[:2, :2]
+    out[2:, :2] = np.einsum("ij...,jk...->ik...", G, C[2:, :2])
+    out[:2, 2:] = np.einsum("ij...,kj...->ik...", C[:2, 2:], G)
+    GC = np.einsum("ij...,jk...->ik...", G, C[2:, 2:])
+    out[2:, 2:] = np.einsum("ij...,kj...->ik...", GC, G)
+    # An (N, K, 5, 5) view of that memory: estimate_arrays transposes it back without a copy.
+    result: F64 = out.transpose(3, 2, 0, 1)
+    return result
 
 
 def estimate_arrays(
@@ -240,33 +284,47 @@ def estimate_arrays(
         raise PoseError(f"radius_mm must be {obs.shape[:2]}, got {radius_mm.shape}")
     n, kc = obs.shape[:2]
     K = camera.K
-    present = np.all(np.isfinite(obs), axis=-1) & np.isfinite(radius_mm) & (radius_mm > 0)
-    present &= (obs[..., 2] * obs[..., 4] - obs[..., 3] ** 2) > 0
-    cov = _sanitise_covariance(cov, present)
+    # Internally every stack of small vectors and matrices keeps its component axes first, then
+    # circles (or candidates), and the fiducials last: (5, K, N), (5, 5, K, N). Each matrix entry
+    # is then one contiguous array, every elementwise operation runs over long inner loops, and
+    # products of the tiny matrices are arithmetic or einsum over whole batches instead of
+    # per-matrix LAPACK or matmul calls.
+    obs_t = np.ascontiguousarray(obs.transpose(2, 1, 0))
+    r_t = radius_mm.T
+    present = np.isfinite(obs_t).all(axis=0) & np.isfinite(r_t) & (r_t > 0)
+    present &= (obs_t[2] * obs_t[4] - obs_t[3] ** 2) > 0
+    cov_t = _sanitise_covariance(cov.transpose(2, 3, 1, 0), present)
     if camera.has_distortion:
-        obs, cov = _undistort(obs, cov, present, camera)
-        present &= np.all(np.isfinite(obs), axis=-1)
-    safe_obs = np.where(present[..., None], obs, np.array([0.0, 0.0, 1.0, 0.0, 1.0]))
-    safe_r = np.where(present, radius_mm, 1.0)
+        obs_t, cov_t = _undistort(obs_t, cov_t, present, camera)
+        present &= np.isfinite(obs_t).all(axis=0)
+    everything = bool(present.all())
+    safe_obs = obs_t if everything else np.where(present, obs_t, _NOMINAL_ELLIPSE)
+    safe_r = r_t if everything else np.where(present, r_t, 1.0)
     # Work in normalised coordinates (K = I): an affine change of the observations.
-    obs_n, W = _to_normalised(safe_obs, _information(cov), K)
-    W = np.where(present[..., None, None], W, 0.0)
+    obs_n, W = _to_normalised(safe_obs, _information(cov_t), K)
+    if not everything:
+        W = np.where(present, W, 0.0)
     # The ambiguity test uses the fits' own covariances (the inner circles' geometry relative to
     # the pose circle is what tells the candidates apart); the refinement adds the systematic
     # floor to the inner circles, as a scalar deflation (sigma^2 / (sigma^2 + floor^2)).
-    lam = np.ones((n, kc))
+    lam = np.ones((kc, n))
     if kc > 1 and inner_floor_px > 0:
-        var = np.trace(cov[:, 1:], axis1=-2, axis2=-1) / 5.0
-        lam[:, 1:] = var / (var + inner_floor_px**2)
-    # Closed form from the pose circle (index 0), both candidates.
-    centers, normals = circle_pose(conic_from_params(obs_n[:, 0]), safe_r[:, 0])  # (N, 2, 3)
-    valid = present[:, 0] & np.all(np.isfinite(centers), axis=(1, 2))
-    centers = np.where(valid[:, None, None], centers, np.array([0.0, 0.0, 1000.0]))
-    normals = np.where(valid[:, None, None], normals, np.array([0.0, 0.0, -1.0]))
-    # Both fit the pose circle exactly; the other circles tell them apart. Their likelihood
-    # weights: a decisive chi2 gap gives (1, 0), a single circle or a fronto-parallel view ~ 0.5.
-    chi2_cf = _chi2(obs_n[:, None], W[:, None], safe_r[:, None], centers, normals)
-    dchi = chi2_cf[:, 1] - chi2_cf[:, 0]
+        c = cov_t[:, :, 1:]
+        var = (c[0, 0] + c[1, 1] + c[2, 2] + c[3, 3] + c[4, 4]) / 5.0
+        lam[1:] = var / (var + inner_floor_px**2)
+    # Closed form from the pose circle (index 0), both candidates: (3, 2, N).
+    centers, normals = circle_pose_t(obs_n[:, 0], safe_r[0])
+    valid = present[0] & np.isfinite(centers).all(axis=(0, 1))
+    centers = np.where(valid, centers, np.array([0.0, 0.0, 1000.0])[:, None, None])
+    normals = np.where(valid, normals, np.array([0.0, 0.0, -1.0])[:, None, None])
+    # Both fit the pose circle exactly (to rounding), so only the other circles, which tell
+    # them apart, enter their chi-square. Likelihood weights: a decisive chi2 gap gives (1, 0),
+    # a single circle or a fronto-parallel view ~ 0.5.
+    if kc > 1:
+        chi2_cf = _chi2(obs_n[:, 1:], W[:, :, 1:], safe_r[1:], centers, normals)  # (2, N)
+    else:
+        chi2_cf = np.zeros((2, n))
+    dchi = chi2_cf[1] - chi2_cf[0]
     w0 = 1.0 / (1.0 + np.exp(np.clip(-0.5 * dchi, -700.0, 700.0)))
     best = np.where(w0 >= 0.5, 0, 1)
     idx = np.arange(n)
@@ -274,162 +332,192 @@ def estimate_arrays(
     # Circles whose floored weight is below 1 % of their own fit's add nothing measurable to
     # the refinement (they already did their job in the ambiguity test): leave them out.
     keep = np.ones(kc, dtype=bool)
-    keep[1:] = np.any(lam[:, 1:] >= 0.01, axis=0)
+    keep[1:] = (lam[1:] >= 0.01).any(axis=1)
+    if not keep.all():
+        obs_n, W, lam, safe_r = obs_n[:, keep], W[:, :, keep], lam[keep], safe_r[keep]
     c_best, normal, cov_c, chi2 = _gauss_newton(
-        obs_n[:, keep],
-        W[:, keep],
-        lam[:, keep],
-        safe_r[:, keep],
-        centers[idx, best],
-        normals[idx, best],
+        obs_n,
+        W,
+        lam,
+        safe_r,
+        centers[:, best, idx],
+        normals[:, best, idx],
         iterations,
         free_scale,
     )
-    cov_best = 0.5 * (cov_c + np.swapaxes(cov_c, -1, -2))
+    cov_best = 0.5 * (cov_c + np.swapaxes(cov_c, 0, 1))  # (3, 3, N)
     c = centers.copy()
-    c[idx, best] = c_best
-    w = np.stack([w0, 1.0 - w0], axis=1)
-    mean = w[:, 0, None] * c[:, 0] + w[:, 1, None] * c[:, 1]
-    dev = c - mean[:, None]
+    c[:, best, idx] = c_best
+    w1 = 1.0 - w0
+    mean = w0 * c[:, 0] + w1 * c[:, 1]  # (3, N)
+    d0, d1 = c[:, 0] - mean, c[:, 1] - mean
     # Mixture covariance: the refined candidate's covariance stands for both.
-    mix = cov_best + np.sum(w[..., None, None] * dev[..., :, None] * dev[..., None, :], axis=1)
-    p = mean @ K.T
-    center_px = p[:, :2] / p[:, 2:3]
-    ok = valid & np.all(np.isfinite(mean), axis=1) & np.all(np.isfinite(mix), axis=(1, 2))
-    ok &= mean[:, 2] > 0
-    return PoseArrays(mean, normal, mix, ok, np.minimum(w0, 1.0 - w0), center_px, chi2)
+    mix = cov_best + (w0 * d0[:, None] * d0[None, :] + w1 * d1[:, None] * d1[None, :])
+    p = K @ mean
+    center_px = (p[:2] / p[2]).T
+    ok = valid & np.isfinite(mean).all(axis=0) & np.isfinite(mix).all(axis=(0, 1))
+    ok &= mean[2] > 0
+    return PoseArrays(
+        np.ascontiguousarray(mean.T),
+        np.ascontiguousarray(normal.T),
+        np.ascontiguousarray(mix.transpose(2, 0, 1)),
+        ok,
+        np.minimum(w0, w1),
+        np.ascontiguousarray(center_px),
+        chi2,
+    )
+
+
+#: Stand-in ellipse ``(u, v, s11, s12, s22)`` (matrix axes first) for circles not observed.
+_NOMINAL_ELLIPSE = np.array([0.0, 0.0, 1.0, 0.0, 1.0])[:, None, None]
 
 
 def _to_normalised(obs: F64, W: F64, K: F64) -> tuple[F64, F64]:
-    """Ellipse parameters and information matrices in normalised coordinates ``K^-1 (u, v, 1)``."""
+    """Ellipse parameters ``(5, ...)`` and information matrices ``(5, 5, ...)`` in normalised
+    coordinates ``K^-1 (u, v, 1)``."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    shifted = obs - np.array([cx, cy, 0.0, 0.0, 0.0])
+    shifted = obs - np.array([cx, cy, 0.0, 0.0, 0.0]).reshape(5, *([1] * (obs.ndim - 1)))
     if fx == fy:
         return shifted / fx, W * (fx * fx)
-    A = np.broadcast_to(np.diag([1.0 / fx, 1.0 / fy]), (*obs.shape[:-1], 2, 2))
-    Jinv = np.linalg.inv(_affine_params_jacobian(shifted, A))
-    return _affine_params(shifted, A), np.swapaxes(Jinv, -1, -2) @ W @ Jinv
+    A = np.diag([1.0 / fx, 1.0 / fy]).reshape(2, 2, *([1] * (obs.ndim - 1)))
+    Jinv = _inverse_affine_jacobian(_affine_params_jacobian(shifted, A))
+    W_n = np.einsum("ji...,jk...->ik...", Jinv, np.einsum("ij...,jk...->ik...", W, Jinv))
+    return _affine_params(shifted, A), W_n
+
+
+def _inverse_affine_jacobian(J: F64) -> F64:
+    """Inverses of Jacobians ``(5, 5, ...)`` of :func:`_affine_params`.
+
+    The centre depends only on the centre and the shape only on the shape, so ``J`` is block
+    diagonal (2x2 and 3x3 blocks, the other entries exactly zero): each block is inverted in
+    closed form.
+    """
+    out = np.zeros_like(J)
+    det2 = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+    out[0, 0], out[0, 1] = J[1, 1] / det2, -J[0, 1] / det2
+    out[1, 0], out[1, 1] = -J[1, 0] / det2, J[0, 0] / det2
+    g = J[2:, 2:]
+    cof = np.empty_like(g)
+    for i in range(3):
+        for j in range(3):
+            i1, i2 = (i + 1) % 3, (i + 2) % 3
+            j1, j2 = (j + 1) % 3, (j + 2) % 3
+            cof[i, j] = g[i1, j1] * g[i2, j2] - g[i1, j2] * g[i2, j1]
+    det3 = g[0, 0] * cof[0, 0] + g[0, 1] * cof[0, 1] + g[0, 2] * cof[0, 2]
+    out[2:, 2:] = np.swapaxes(cof, 0, 1) / det3
+    return out
 
 
 def _sanitise_covariance(cov: F64, present: NDArray[np.bool_]) -> F64:
-    """Replace unusable covariances (non-finite, non-positive variances) by the nominal one."""
-    out = 0.5 * (cov + np.swapaxes(cov, -1, -2))
-    nominal = np.eye(5) * DEFAULT_SIGMA_PX**2
-    diag = np.diagonal(out, axis1=-2, axis2=-1)
-    good = np.all(np.isfinite(out), axis=(-2, -1)) & np.all(diag > 0, axis=-1) & present
-    if not np.all(good):
-        out = np.where(good[..., None, None], out, nominal)
+    """Replace unusable covariances (non-finite, non-positive variances) by the nominal one.
+
+    ``cov`` is ``(5, 5, ...)`` (matrix axes first); returns a new contiguous array.
+    """
+    out = np.add(cov, np.swapaxes(cov, 0, 1), out=np.empty(cov.shape))
+    out *= 0.5
+    diag = out.reshape(25, *out.shape[2:])[::6]
+    good = np.isfinite(out).all(axis=(0, 1)) & (diag > 0).all(axis=0) & present
+    floor = 1e-9 * np.sum(diag, axis=0, where=good)
+    if not good.all():
+        nominal = np.eye(5).reshape(5, 5, *([1] * (out.ndim - 2))) * DEFAULT_SIGMA_PX**2
+        out = np.where(good, out, nominal)
     # A tiny floor keeps the inverse well conditioned without changing honest covariances.
-    return out + np.eye(5) * (1e-9 * np.sum(diag, axis=-1, where=good[..., None]))[..., None, None]
+    for i in range(5):
+        out[i, i] += floor
+    return out
 
 
 def _information(cov: F64) -> F64:
-    """Inverse covariances; the nominal one where a covariance is not positive definite."""
-    W = _inv(cov)
-    diag = np.diagonal(W, axis1=-2, axis2=-1)
-    good = np.all(np.isfinite(W), axis=(-2, -1)) & np.all(diag > 0, axis=-1)
-    if np.all(good):
+    """Inverse covariances ``(5, 5, ...)``; the nominal one where one is not positive definite."""
+    W = spd_inverse(cov)
+    diag = W.reshape(25, *W.shape[2:])[::6]
+    good = np.isfinite(W).all(axis=(0, 1)) & (diag > 0).all(axis=0)
+    if good.all():
         return W
-    out: F64 = np.where(good[..., None, None], W, np.eye(5) / DEFAULT_SIGMA_PX**2)
+    nominal = np.eye(5).reshape(5, 5, *([1] * (W.ndim - 2))) / DEFAULT_SIGMA_PX**2
+    out: F64 = np.where(good, W, nominal)
     return out
 
 
 def _undistort(
     obs: F64, cov: F64, present: NDArray[np.bool_], camera: CameraModel
 ) -> tuple[F64, F64]:
-    """Ideal-camera ellipses of fitted (distorted) ellipses, with propagated covariances."""
-    safe = np.where(present[..., None], obs, np.array([0.0, 0.0, 1.0, 0.0, 1.0]))
-    pts = ellipse_points(safe, _UNDISTORT_SAMPLES)
-    und = camera.undistort_pixels(pts.reshape(-1, 2)).reshape(pts.shape)
-    new = params_from_conic(fit_conics(und))
-    # Local affine part of the undistortion at the centre (central differences, 0.5 px).
+    """Ideal-camera ellipses ``(5, ...)`` of fitted (distorted) ones, with propagated
+    covariances ``(5, 5, ...)``."""
+    safe = np.where(present, obs, _NOMINAL_ELLIPSE)
+    # Local affine part of the undistortion at the centre (central differences, 0.5 px), and
+    # the centre itself.
     h = 0.5
-    c = safe[..., :2].reshape(-1, 2)
+    c = np.moveaxis(safe[:2], 0, -1).reshape(-1, 2)
     du, dv = np.array([h, 0.0]), np.array([0.0, h])
-    probe = np.concatenate([c + du, c - du, c + dv, c - dv])
-    m = camera.undistort_pixels(probe).reshape(4, -1, 2)
-    A = np.stack([(m[0] - m[1]) / (2 * h), (m[2] - m[3]) / (2 * h)], axis=-1)
-    A = A.reshape((*obs.shape[:-1], 2, 2))
+    probe = np.concatenate([c + du, c - du, c + dv, c - dv, c])
+    m = camera.undistort_pixels(probe).reshape(5, -1, 2)
+    A = np.stack([(m[0] - m[1]) / (2 * h), (m[2] - m[3]) / (2 * h)], axis=-1)  # (M, 2, 2)
+    # The boundary samples, undistorted from the affine prediction (fewer Newton steps, same
+    # converged points), and a conic refitted through them.
+    pts = ellipse_points(np.moveaxis(safe, 0, -1), _UNDISTORT_SAMPLES)  # (K, N, S, 2)
+    flat = pts.reshape(len(c), -1, 2)
+    guess = m[4][:, None, :] + np.einsum("mij,msj->msi", A, flat - c[:, None, :])
+    und = camera.undistort_pixels(flat.reshape(-1, 2), guess.reshape(-1, 2)).reshape(pts.shape)
+    new = np.moveaxis(params_from_conic(fit_conics(und)), -1, 0)
+    A = np.moveaxis(A, 0, -1).reshape(2, 2, *obs.shape[1:])  # (2, 2, K, N)
     J = _affine_params_jacobian(safe, A)
-    newcov = J @ cov @ np.swapaxes(J, -1, -2)
-    new = np.where(present[..., None], new, np.nan)
+    newcov = np.einsum("ij...,kj...->ik...", np.einsum("ij...,jk...->ik...", J, cov), J)
+    new = np.where(present, new, np.nan)
     return new, newcov
 
 
 def _affine_params(p: F64, A: F64) -> F64:
-    """Parameters of the ellipse ``p`` mapped by the linear map ``A`` (centre and shape)."""
-    S = np.empty((*p.shape[:-1], 2, 2))
-    S[..., 0, 0], S[..., 0, 1], S[..., 1, 0], S[..., 1, 1] = (
-        p[..., 2],
-        p[..., 3],
-        p[..., 3],
-        p[..., 4],
-    )
-    AS = A @ S
-    M = AS @ np.swapaxes(AS, -1, -2)
-    m11, m12, m22 = M[..., 0, 0], M[..., 0, 1], M[..., 1, 1]
+    """Parameters ``(5, ...)`` of the ellipses ``p`` mapped by the linear maps ``A`` (2, 2, ...)."""
+    s11, s12, s22 = p[2], p[3], p[4]
+    # M = (A S)(A S)^T with S = [[s11, s12], [s12, s22]].
+    as11 = A[0, 0] * s11 + A[0, 1] * s12
+    as12 = A[0, 0] * s12 + A[0, 1] * s22
+    as21 = A[1, 0] * s11 + A[1, 1] * s12
+    as22 = A[1, 0] * s12 + A[1, 1] * s22
+    m11 = as11 * as11 + as12 * as12
+    m12 = as11 * as21 + as12 * as22
+    m22 = as21 * as21 + as22 * as22
     root = np.sqrt(m11 * m22 - m12 * m12)
     t = np.sqrt(m11 + m22 + 2.0 * root)
-    c = np.einsum("...ij,...j->...i", A, p[..., :2])
-    return np.stack([c[..., 0], c[..., 1], (m11 + root) / t, m12 / t, (m22 + root) / t], axis=-1)
-
-
-def _affine_params_jacobian(p: F64, A: F64) -> F64:
-    """Numerical Jacobian of :func:`_affine_params` w.r.t. ``p``, shape ``(..., 5, 5)``."""
-    J = np.empty((*p.shape, 5))
-    for j in range(5):
-        step = np.zeros(5)
-        step[j] = 1e-4
-        J[..., :, j] = (_affine_params(p + step, A) - _affine_params(p - step, A)) / 2e-4
-    return J
-
-
-def _basis(n: F64) -> tuple[F64, F64]:
-    """Two unit vectors orthogonal to each unit ``n`` (``(..., 3)``) and to each other."""
-    n0, n1, n2 = n[..., 0], n[..., 1], n[..., 2]
-    use_x = np.abs(n0) < 0.9
-    # e1 = n x (1, 0, 0) = (0, n2, -n1), or n x (0, 1, 0) = (-n2, 0, n0).
-    e1 = np.stack(
-        [np.where(use_x, 0.0, -n2), np.where(use_x, n2, 0.0), np.where(use_x, -n1, n0)], axis=-1
-    )
-    e1 /= np.sqrt(np.sum(e1 * e1, axis=-1))[..., None]
-    e10, e11, e12 = e1[..., 0], e1[..., 1], e1[..., 2]
-    e2 = np.stack([n1 * e12 - n2 * e11, n2 * e10 - n0 * e12, n0 * e11 - n1 * e10], axis=-1)
-    return e1, e2
-
-
-def _chi2(obs: F64, W: F64, radius: F64, center: F64, normal: F64) -> F64:
-    """Weighted squared residual of all circles for poses ``(..., 3)``."""
-    res = obs - circle_params(center[..., None, :], normal[..., None, :], radius)
-    res = np.where(np.isfinite(res), res, 0.0)
-    return _quadratic(res, W)
-
-
-def _quadratic(res: F64, W: F64) -> F64:
-    """Sum over circles of ``res^T W res`` (``(..., K, 5)``, ``(..., K, 5, 5)`` -> ``(...)``)."""
-    out: F64 = np.sum(res * (W @ res[..., None])[..., 0], axis=(-2, -1))
+    c0 = A[0, 0] * p[0] + A[0, 1] * p[1]
+    c1 = A[1, 0] * p[0] + A[1, 1] * p[1]
+    shape = np.broadcast_shapes(c0.shape, m11.shape)
+    out = np.empty((5, *shape))
+    out[0], out[1], out[2], out[3], out[4] = c0, c1, (m11 + root) / t, m12 / t, (m22 + root) / t
     return out
 
 
-def _inv(A: F64) -> F64:
-    """Inverses of a stack of symmetric positive-definite matrices ``(..., m, m)``.
+def _affine_params_jacobian(p: F64, A: F64) -> F64:
+    """Numerical Jacobian of :func:`_affine_params` w.r.t. ``p``, shape ``(5, 5, ...)``."""
+    J = np.empty((5, 5, *np.broadcast_shapes(p.shape[1:], A.shape[2:])))
+    step = np.zeros((5, *([1] * (p.ndim - 1))))
+    for j in range(5):
+        step[j] = 1e-4
+        J[:, j] = (_affine_params(p + step, A) - _affine_params(p - step, A)) / 2e-4
+        step[j] = 0.0
+    return J
 
-    Gauss-Jordan without pivoting (stable for SPD matrices) with the stack as the fast axis: for
-    thousands of 5x5 matrices this is several times faster than :func:`numpy.linalg.inv`.
+
+def _chi2(obs: F64, W: F64, radius: F64, center: F64, normal: F64) -> F64:
+    """Weighted squared residual over the given circles of both candidate poses.
+
+    ``obs`` ``(5, K, N)``, ``W`` ``(5, 5, K, N)``, ``radius`` ``(K, N)``, ``center`` and
+    ``normal`` ``(3, 2, N)``; returns ``(2, N)``.
     """
-    m = A.shape[-1]
-    B = np.ascontiguousarray(np.moveaxis(A, (-2, -1), (0, 1)), dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for k in range(m):
-            p = 1.0 / B[k, k]
-            B[k, k] = 1.0
-            B[k] *= p
-            for i in range(m):
-                if i != k:
-                    f = B[i, k].copy()
-                    B[i, k] = 0.0
-                    B[i] -= f * B[k]
-    out: F64 = np.moveaxis(B, (0, 1), (-2, -1))
+    pred = circle_params_t(center[:, :, None], normal[:, :, None], radius)  # (5, 2, K, N)
+    res = obs[:, None] - pred
+    if not np.isfinite(res.sum()):  # degenerate predictions contribute nothing
+        res = np.where(np.isfinite(res), res, 0.0)
+    return _quadratic(res, W[:, :, None])
+
+
+def _quadratic(res: F64, W: F64) -> F64:
+    """Sum over circles of ``res^T W res``.
+
+    ``res`` ``(5, ..., K, N)`` and ``W`` ``(5, 5, ..., K, N)`` give ``(..., N)``.
+    """
+    out: F64 = np.einsum("i...,ij...,j...->...", res, W, res).sum(axis=-2)
     return out
 
 
@@ -443,10 +531,10 @@ def _gauss_newton(
     iterations: int,
     free_scale: bool = True,
 ) -> tuple[F64, F64, F64, F64]:
-    """Refine circle centres and normals (``(N, 3)``) against all circles of each fiducial.
+    """Refine circle centres and normals (``(3, N)``) against all circles of each fiducial.
 
-    ``obs`` ``(N, K, 5)`` and ``W`` ``(N, K, 5, 5)`` (inverse covariances of the fits) are in
-    normalised coordinates, ``radius`` ``(N, K)``. Circle ``k`` is weighted by ``lam[..., k] * W``
+    ``obs`` ``(5, K, N)`` and ``W`` ``(5, 5, K, N)`` (inverse covariances of the fits) are in
+    normalised coordinates, ``radius`` ``(K, N)``. Circle ``k`` is weighted by ``lam[k] * W``
     (``lam < 1`` deflates circles with a systematic floor); the covariance returned is then the
     sandwich ``A^-1 B A^-1`` with ``A = sum lam J^T W J`` and ``B = sum lam^2 J^T W J``, which is
     the estimator's actual covariance under the fits' own covariances.
@@ -456,69 +544,77 @@ def _gauss_newton(
     but depth comes from the pose circle alone, so a size bias of the inner edges (toner spread,
     blur of a nearby track) cannot leak into z. ``iterations >= 1``.
 
-    Returns centres, normals, the 3x3 covariances of the centres and the final weighted
-    chi-square.
+    Returns centres ``(3, N)``, normals ``(3, N)``, the covariances of the centres ``(3, 3, N)``
+    and the final weighted chi-square ``(N,)``.
     """
     c = center.copy()
     n = normal.copy()
     rad = radius.copy()
-    kc = radius.shape[-1]
+    kc = radius.shape[0]
     extra = kc - 1 if free_scale else 0
     npar = 5 + extra
-    cov = np.zeros((*c.shape[:-1], 3, 3))
-    chi2 = np.zeros(c.shape[:-1])
-    Wl = W * lam[..., None, None]
+    cov = np.zeros((3, 3, *c.shape[1:]))
+    chi2 = np.zeros(c.shape[1:])
+    Wl = W * lam
     for _ in range(iterations):
-        e1, e2 = _basis(n)
+        e1, e2 = (np.stack(e) for e in plane_basis((n[0], n[1], n[2])))
         # The base pose and perturbed ones (forward differences: steps far below the noise, far
         # above round-off), evaluated in one vectorised call; the last one scales circles 1..K-1.
-        h = 1e-6 * c[..., 2]
+        h = 1e-6 * c[2]
         da = 1e-6
         m = 7 if extra else 6
-        cs = np.broadcast_to(c, (m, *c.shape)).copy()
-        ns = np.broadcast_to(n, (m, *n.shape)).copy()
-        rs = np.broadcast_to(rad, (m, *rad.shape)).copy()
+        cs = np.repeat(c[:, None], m, axis=1)  # (3, m, N)
+        ns = np.repeat(n[:, None], m, axis=1)
+        rs = np.repeat(rad[None], m, axis=0)  # (m, K, N)
         for j in range(3):
-            cs[1 + j, ..., j] += h
-        ns[4] += da * e1
-        ns[5] += da * e2
-        ns[4:6] /= np.sqrt(np.sum(ns[4:6] * ns[4:6], axis=-1))[..., None]
+            cs[j, 1 + j] += h
+        ns[:, 4] += da * e1
+        ns[:, 5] += da * e2
+        ns[:, 4:6] /= np.sqrt(ns[0, 4:6] ** 2 + ns[1, 4:6] ** 2 + ns[2, 4:6] ** 2)
         if extra:
-            rs[6, ..., 1:] *= 1.0 + da
-        pred = circle_params(cs[..., None, :], ns[..., None, :], rs)  # (m, N, K, 5)
-        base = pred[0]
-        steps = np.stack([h, h, h, np.full_like(h, da), np.full_like(h, da)])
-        J = np.zeros((*base.shape, npar))
-        J[..., :5] = np.moveaxis((pred[1:6] - base) / steps[..., None, None], 0, -1)
+            rs[6, 1:] *= 1.0 + da
+        pred = circle_params_t(cs[:, :, None], ns[:, :, None], rs)  # (5, m, K, N)
+        base = pred[:, 0]
+        J = np.zeros((5, npar, *base.shape[1:]))  # (5, P, K, N)
+        J[:, :3] = (pred[:, 1:4] - base[:, None]) / h
+        J[:, 3:5] = (pred[:, 4:6] - base[:, None]) / da
         if extra:
-            ds = (pred[6] - base) / da  # (N, K, 5): each circle's own scale column
+            ds = (pred[:, 6] - base) / da  # (5, K, N): each circle's own scale column
             for k in range(1, kc):
-                J[..., k, :, 4 + k] = ds[..., k, :]
-        J = np.where(np.isfinite(J), J, 0.0)
+                J[:, 4 + k, k] = ds[:, k]
         res = obs - base
-        res = np.where(np.isfinite(res), res, 0.0)
-        JtW = np.ascontiguousarray(np.swapaxes(J, -1, -2)) @ Wl
-        terms = JtW @ J  # (N, K, P, P), lam_k J^T W J
-        info = np.sum(terms, axis=-3)
-        grad = np.sum(JtW @ res[..., None], axis=-3)
+        if not np.isfinite(res.sum() + J.sum()):  # degenerate predictions contribute nothing
+            J = np.where(np.isfinite(J), J, 0.0)
+            res = np.where(np.isfinite(res), res, 0.0)
+        WJ = np.einsum("ij...,jq...->iq...", Wl, J)  # lam_k W J
+        terms = np.einsum("ip...,iq...->pq...", J, WJ)  # (P, P, K, N), lam_k J^T W J
+        info = terms.sum(axis=-2)
+        grad = np.einsum("ip...,i...->p...", WJ, res).sum(axis=-2)  # (P, N)
         chi2_lin = _quadratic(res, Wl)
         # A tiny damping only guards against singular steps (e.g. a missing inner circle).
-        damp = (1e-12 * np.trace(info, axis1=-2, axis2=-1) + 1e-300)[..., None, None] * np.eye(npar)
-        inv_info = _inv(info + damp)
-        delta = (inv_info @ grad)[..., 0]
-        if np.all(lam == 1.0):
-            cov = inv_info[..., :3, :3]
+        damp = 1e-12 * info.trace() + 1e-300
+        for i in range(npar):
+            info[i, i] += damp
+        inv_info = spd_inverse(info)
+        delta = np.einsum("pq...,q...->p...", inv_info, grad)
+        if (lam == 1.0).all():
+            cov = inv_info[:3, :3]
         else:
             # Sandwich covariance of the position block only (what is reported).
-            B = np.sum(terms * lam[..., None, None], axis=-3)
-            cov = inv_info[..., :3, :] @ B @ inv_info[..., :, :3]
-        delta = np.where(np.isfinite(delta), delta, 0.0)
-        chi2 = np.maximum(chi2_lin - np.sum(grad[..., 0] * delta, axis=-1), 0.0)
-        c = c + delta[..., :3]
-        n = n + delta[..., 3:4] * e1 + delta[..., 4:5] * e2
-        n /= np.sqrt(np.sum(n * n, axis=-1))[..., None]
+            B = np.sum(terms * lam, axis=-2)
+            cov = np.einsum(
+                "ip...,pj...->ij...",
+                inv_info[:3],
+                np.einsum("pq...,qj...->pj...", B, inv_info[:, :3]),
+            )
+        if not np.isfinite(delta.sum()):
+            delta = np.where(np.isfinite(delta), delta, 0.0)
+        chi2 = np.maximum(chi2_lin - (grad * delta).sum(axis=0), 0.0)
+        c = c + delta[:3]
+        n = n + delta[3] * e1 + delta[4] * e2
+        n /= np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
         if extra:
-            rad[..., 1:] *= 1.0 + delta[..., 5:]
+            rad[1:] *= 1.0 + delta[5:]
     # The covariance of the last linearisation serves the final point, and its chi-square is the
     # linearised one (res^T W res - grad^T delta): the step is far below the scale on which the
     # Jacobian changes.

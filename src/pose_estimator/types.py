@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,3 +42,37 @@ class FiducialPose:
     def sigma_mm(self) -> NDArray[np.float64]:
         """Standard deviations of x, y and z, mm."""
         return np.sqrt(np.clip(np.diag(self.covariance_mm2), 0.0, None))
+
+    @classmethod
+    def from_rows(
+        cls,
+        codes: Iterable[int],
+        positions_mm: Iterable[NDArray[np.float64]],
+        normals: Iterable[NDArray[np.float64]],
+        covariances_mm2: Iterable[NDArray[np.float64]],
+        detections: Iterable[FiducialDetection | None],
+    ) -> list[FiducialPose]:
+        """Single-frame poses, one per item of the parallel iterables (as the constructor makes
+        them, ``n_frames = 1``).
+
+        The estimator makes hundreds per frame; the generated ``__init__`` of a frozen dataclass
+        costs a slow ``object.__setattr__`` call per field, so the slots are filled directly.
+        """
+        new = object.__new__
+        set_code, set_pos, set_normal, set_cov, set_det, set_frames = (
+            getattr(cls, name).__set__
+            for name in ("code", "position_mm", "normal", "covariance_mm2", "detection", "n_frames")
+        )
+        out = []
+        for code, pos, normal, cov, det in zip(
+            codes, positions_mm, normals, covariances_mm2, detections, strict=True
+        ):
+            pose = new(cls)
+            set_code(pose, code)
+            set_pos(pose, pos)
+            set_normal(pose, normal)
+            set_cov(pose, cov)
+            set_det(pose, det)
+            set_frames(pose, 1)
+            out.append(pose)
+        return out

@@ -43,6 +43,17 @@ def test_distortion_round_trip(model: str) -> None:
     np.testing.assert_allclose(cam.undistort_normalized(uv), xy, atol=1e-10)
 
 
+@pytest.mark.parametrize("model", sorted(MODELS))
+def test_undistort_guess_only_saves_iterations(model: str) -> None:
+    """A starting guess near the answer converges to the same undistorted pixels."""
+    cam = CameraModel(3008, 2000, np.array(K), model, np.array(MODELS[model]))
+    rng = np.random.default_rng(1234)
+    uv = rng.uniform([0.0, 0.0], [3007.0, 1999.0], size=(500, 2))
+    plain = cam.undistort_pixels(uv)
+    guess = plain + rng.normal(0.0, 0.05, plain.shape)
+    np.testing.assert_allclose(cam.undistort_pixels(uv, guess), plain, rtol=0, atol=1e-9)
+
+
 @pytest.mark.parametrize(
     ("doc", "match"),
     [

@@ -67,6 +67,65 @@ def test_circle_pose_batch_and_scale_invariance() -> None:
         np.testing.assert_allclose(n_batch[k], n1, atol=1e-9)
 
 
+@pytest.mark.parametrize("slant_deg", [0.0, 1e-6, 86.0, 88.0, 89.0])
+@pytest.mark.parametrize("position", [(0.0, 0.0, 700.0), (150.0, 100.0, 1400.0)])
+def test_circle_pose_ill_conditioned_cones(
+    slant_deg: float, position: tuple[float, float, float]
+) -> None:
+    """Exactly fronto-parallel and far, steep circles: the closed-form eigen-decomposition stays
+    as accurate as the cone's conditioning allows (l2 and l3 tiny against l1 at 89 deg)."""
+    R = rotation_from_slant_tilt(np.radians(slant_deg), tilt=2.0, spin=0.5)
+    target = Target(3, "ring", 7.1, R, np.array(position))
+    truth = target_truth(CAMERA, target)
+    if truth.normal @ truth.position_mm >= 0:
+        R = rotation_from_slant_tilt(np.radians(slant_deg), tilt=2.0 + np.pi, spin=0.5)
+        target = Target(3, "ring", 7.1, R, np.array(position))
+        truth = target_truth(CAMERA, target)
+    centers, normals = circle_pose(_normalised_cone(truth.conics[0]), 3.55)
+    err = np.linalg.norm(centers - truth.position_mm, axis=1)
+    i = int(np.argmin(err))
+    # Rounding of the cone itself limits a 89 deg circle at 1.4 m to a few parts in 1e6.
+    tol = 1e-5 if slant_deg > 85 else 1e-9
+    assert err[i] < tol * position[2]
+    assert np.degrees(np.arccos(min(1.0, normals[i] @ truth.normal))) < (
+        0.01 if tol > 1e-9 else 1e-6
+    )
+
+
+def test_fit_conics_is_the_algebraic_least_squares_solution() -> None:
+    """Off-conic points: the fit equals the smallest right singular vector of the design matrix
+    (the definition of the algebraic fit), for a batch of round and very elongated ellipses."""
+    rng = np.random.default_rng(1234)
+    params = np.array(
+        [
+            params_from_axes(
+                rng.uniform(0, 3000), rng.uniform(0, 2000), a, b, rng.uniform(0, np.pi)
+            )
+            for a, b in [(40.0, 39.0), (40.0, 20.0), (60.0, 5.0), (12.0, 1.0)]
+        ]
+    )
+    pts = ellipse_points(params, 32) + rng.normal(0.0, 0.05, (4, 32, 2))
+    got = fit_conics(pts)
+    for k in range(4):
+        P = pts[k]
+        mean = P.mean(axis=0)
+        scale = np.sqrt(np.mean(np.sum((P - mean) ** 2, axis=1)))
+        x, y = ((P - mean) / scale).T
+        A = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+        c = np.linalg.svd(A)[2][-1]
+        Cn = np.array(
+            [[c[0], c[1] / 2, c[3] / 2], [c[1] / 2, c[2], c[4] / 2], [c[3] / 2, c[4] / 2, c[5]]]
+        )
+        T = np.array(
+            [[1 / scale, 0, -mean[0] / scale], [0, 1 / scale, -mean[1] / scale], [0, 0, 1]]
+        )
+        want = T.T @ Cn @ T
+        # Same conic up to scale and sign.
+        g = got[k] / np.linalg.norm(got[k])
+        w = want / np.linalg.norm(want) * np.sign(np.sum(g * want))
+        np.testing.assert_allclose(g, w, rtol=0, atol=1e-11)
+
+
 def test_circle_params_matches_homography_conic() -> None:
     """The basis-free cone of a 3-D circle equals the homography projection."""
     R = rotation_from_slant_tilt(np.radians(37.0), 0.4, 0.2)

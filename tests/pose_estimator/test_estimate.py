@@ -215,3 +215,44 @@ def test_missing_inner_circles_mixed_in_one_batch() -> None:
         assert np.all(np.abs(pose.position_mm - target.position_mm) < 4.0 * pose.sigma_mm)
     # One circle cannot tell the two poses apart: its x, y uncertainty includes their spread.
     assert poses[2].sigma_mm[0] > poses[0].sigma_mm[0]
+
+
+def test_poses_from_rows_equal_constructed_poses() -> None:
+    """The batch constructor fills every field as the dataclass constructor does."""
+    import dataclasses
+
+    rng = np.random.default_rng(1234)
+    pos, nrm, cov = rng.normal(size=(3, 3)), rng.normal(size=(3, 3)), rng.normal(size=(3, 3, 3))
+    codes = [4, 8, 15]
+    batch = FiducialPose.from_rows(codes, pos, nrm, cov, [None, None, None])
+    for i, pose in enumerate(batch):
+        ref = FiducialPose(codes[i], pos[i], nrm[i], cov[i], None)
+        for field in dataclasses.fields(FiducialPose):
+            a, b = getattr(pose, field.name), getattr(ref, field.name)
+            assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b, field.name
+
+
+def test_detection_covariances_carried_to_shape_parameters() -> None:
+    """detections_to_arrays applies J C J^T of the axes -> parameters Jacobian to each fit's
+    covariance (also to a non-symmetric one), with NaN rows for missing circles."""
+    from fiducial_detector.types import Ellipse, FiducialDetection
+    from pose_estimator.conic_pose import axes_to_params_jacobian
+
+    rng = np.random.default_rng(1234)
+    dets = []
+    for i, count in enumerate((3, 1, 2)):
+        ells = []
+        for k in range(count):
+            a, b, angle = 30.0 - 5 * k, 20.0 - 4 * k, rng.uniform(0, np.pi)
+            cov = rng.normal(size=(5, 5)) * 1e-3
+            ells.append(Ellipse((100.0 * i, 50.0), a, b, angle, cov, 1.0 - 0.2 * k))
+        dets.append(FiducialDetection(i, 0, (100.0 * i, 50.0), tuple(ells), 0.7, "ring"))
+    obs, cov, radius = detections_to_arrays(dets, 3.55)
+    assert obs.shape == (3, 3, 5) and cov.shape == (3, 3, 5, 5)
+    for i, d in enumerate(dets):
+        for k, e in enumerate(d.ellipses):
+            J = axes_to_params_jacobian(e.semi_major, e.semi_minor, e.angle)
+            np.testing.assert_allclose(cov[i, k], J @ e.covariance @ J.T, rtol=1e-12, atol=1e-18)
+            assert radius[i, k] == pytest.approx(3.55 * e.radius)
+        assert np.all(np.isnan(obs[i, len(d.ellipses) :]))
+        assert np.all(np.isnan(cov[i, len(d.ellipses) :]))
