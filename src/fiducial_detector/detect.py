@@ -267,9 +267,13 @@ def detect_grey(
     )
     found: list[FiducialDetection] = []
     designs = (RING, DOT) if config.design == "any" else (DESIGNS[config.design],)
+    noise: float | None = None  # estimated once, when the first candidates need it
     for design in designs:
         cands = _candidates(bounds, design, config.min_diameter_px, max_d)
-        found += _finish(grey, full_scale, _outside(cands, found), config.reader, config.subpixel)
+        cands = _outside(cands, found)
+        if noise is None and len(cands.centre):
+            noise = _noise_std(grey)
+        found += _finish(grey, full_scale, cands, config.reader, config.subpixel, noise)
     found = _deduplicate(found)
     found.sort(key=lambda d: (d.center_px[1], d.center_px[0]))
     return found
@@ -326,8 +330,10 @@ def _finish(
     cands: _Candidates,
     reader: ReaderConfig,
     subpixel: SubpixelMethod = "profile",
+    noise: float | None = None,
 ) -> list[FiducialDetection]:
-    """Read codes, fit every circle of the accepted candidates, read again, build results."""
+    """Read codes, fit every circle of the accepted candidates, read again, build results
+    (``noise``: the image's noise sd, estimated here when not given)."""
     if len(cands.centre) == 0:
         return []
     design = cands.design
@@ -335,7 +341,8 @@ def _finish(
     first = read_codes(
         grey, full_scale, design, cands.centre, cands.axes, cands.angle, cands.drift, reader
     )
-    noise = _noise_std(grey)
+    if noise is None:
+        noise = _noise_std(grey)
     retry = np.nonzero(first.consistent & ~first.accepted & (first.nearest <= RETRY_MAX_DISTANCE))[
         0
     ]
