@@ -3,9 +3,10 @@
 The first pass is the plain global matching (:func:`displacement_matcher.match`). Units are then
 found (:func:`displacement_matcher.units.assign_units`) and their motion estimated; each unit whose
 same-code matches agree on a motion predicts where its baseline fiducials are now, and the next
-pass measures costs from there with a tight gate for them, while pairs that contradict the current
-state's own grouping are excluded. Every pass is still one exact global matching. Camera frame,
-millimetres.
+pass measures costs from there with a tight gate across the line of sight (depth, which a single
+camera measures with heavy tails, gets slack), while pairs that contradict the current state's own
+grouping are excluded and baseline units that the current grouping shows to be one are merged.
+Every pass is still one exact global matching. Camera frame, millimetres.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ def match_units(
     refine_passes: int = 2,
     rigid_gate_mm: float = 8.0,
     translation_gate_mm: float = 15.0,
+    depth_slack_mm: float = 100.0,
     **match_kw: Any,
 ) -> UnitAnalysis:
     """Match fiducials, find units and their motion, then re-match knowing how units moved.
@@ -84,7 +86,11 @@ def match_units(
     refine_passes : int
         Unit-aware passes after the first (0 for the plain matching).
     rigid_gate_mm, translation_gate_mm : float
-        Gates of predicted fiducials.
+        Gates of predicted fiducials (across the line of sight).
+    depth_slack_mm : float
+        Depth discrepancy of a predicted fiducial that is not counted (see
+        :func:`displacement_matcher.match`): identity follows the image, where a monocular pose
+        is precise, while the unit motion (:func:`unit_motions`) screens out the depth outliers.
     **match_kw
         Passed to :func:`displacement_matcher.match` (``gate_mm``, ``code_penalty_mm``...).
     """
@@ -118,25 +124,98 @@ def match_units(
         pred = np.full((len(baseline), 3), np.nan)
         gate = np.full(len(baseline), np.nan)
         for u in units:
-            if u.method == "none" or u.overturned or u.n_matched == 0:
+            if u.overturned:
+                continue
+            if u.method == "none" or u.n_matched == 0:
+                # Nothing matched. A unit of several fiducials may have moved far and lost its
+                # partners to a wrong first guess: it searches the full gate again. A lone
+                # fiducial is weak evidence (far off, a same-code stranger is as likely as its
+                # partner; most units do not move): it is looked for where it was, with the
+                # depth slack (its depth may be far off while the image shows it in place).
+                if len(u.baseline_indices) == 1:
+                    i = u.baseline_indices[0]
+                    pred[i] = baseline[i].position_mm
+                    gate[i] = translation_gate_mm
                 continue
             ref = u.reference_before_mm
             for i in u.baseline_indices:
                 p = np.asarray(baseline[i].position_mm, dtype=np.float64)
                 pred[i] = u.rotation @ (p - ref) + ref + u.translation_mm
                 gate[i] = rigid_gate_mm if u.method == "rigid" else translation_gate_mm
+        merged = _merge_fragments(result, groups[0], cur_groups, span)
+        if merged is not None:
+            groups = (merged, groups[1])
+            kw["groups"] = groups
+            kw["centres"] = {}
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
         result = match(
             baseline,
             current,
             prediction_mm=pred,
             row_gate_mm=gate,
+            depth_slack_mm=depth_slack_mm,
             exclude_pairs=sorted(excluded),
             **match_kw,
         )
         units, unassigned = unit_motions(result, **kw)
         passes += 1
     return UnitAnalysis(result, units, unassigned, passes)
+
+
+def _merge_fragments(
+    result: MatchResult,
+    base_units: list[tuple[str, list[int]]],
+    cur_groups: list[list[int]],
+    span_mm: float,
+) -> list[tuple[str, list[int]]] | None:
+    """Baseline units joined where the current state's grouping shows they are one unit.
+
+    A baseline unit split in two (one fiducial's depth far off fails the template's distance
+    check) is whole again when one current unit holds same-code partners of both parts, their
+    codes are all different and every pair of them lies within ``span_mm`` across the line of
+    sight (depth is what went wrong). Returns the new unit list (the merged unit keeps the first
+    part's id), or None when nothing merges.
+    """
+    base = result.baseline
+    unit_of = {i: n for n, (_, ix) in enumerate(base_units) for i in ix}
+    pair_of: dict[int, int] = {
+        int(d.current_index): int(d.baseline_index)
+        for d in result.displacements
+        if d.label == "same_code" and d.current_index is not None and d.baseline_index is not None
+    }
+    parent = list(range(len(base_units)))
+
+    def root(n: int) -> int:
+        while parent[n] != n:
+            n = parent[n]
+        return n
+
+    members = {n: list(ix) for n, (_, ix) in enumerate(base_units)}
+    changed = False
+    for g in cur_groups:
+        parts = sorted(
+            {root(unit_of[pair_of[j]]) for j in g if j in pair_of and pair_of[j] in unit_of}
+        )
+        if len(parts) < 2:
+            continue
+        ix = [i for n in parts for i in members[n]]
+        codes = [int(base[i].code) for i in ix]
+        if len(set(codes)) != len(codes):
+            continue
+        pos = np.array([base[i].position_mm for i in ix], dtype=np.float64)
+        ray = pos.mean(axis=0)
+        ray /= max(float(np.linalg.norm(ray)), 1e-12)
+        diff = pos[:, None] - pos[None]
+        lateral = diff - np.einsum("ijk,k->ij", diff, ray)[..., None] * ray
+        if np.max(np.linalg.norm(lateral, axis=2)) > span_mm:
+            continue
+        for n in parts[1:]:
+            parent[n] = parts[0]
+            members[parts[0]] += members.pop(n)
+        changed = True
+    if not changed:
+        return None
+    return [(name, sorted(members[n])) for n, (name, _) in enumerate(base_units) if n in members]
 
 
 def _unit_conflicts(

@@ -138,6 +138,7 @@ def report_dict(
                     "overturn_deg": t.overturn_deg,
                     "overturned_count_as_displaced": t.overturned_displaced,
                     "lost_count_as_displaced": t.lost_displaced,
+                    "lateral_confirm_mm": t.lateral_confirm_mm,
                 },
                 "text": summary.describe(),
             }

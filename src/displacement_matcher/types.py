@@ -249,6 +249,9 @@ class DamageThresholds:
         Whether overturned units count as displaced.
     lost_displaced : bool
         Whether units seen before and not found after count as displaced.
+    lateral_confirm_mm : float
+        A unit measured by one fiducial that moved less than this across the line of sight has
+        no confirmed motion (its depth change alone is not trusted).
     """
 
     dn_mm: float
@@ -258,6 +261,7 @@ class DamageThresholds:
     overturn_deg: float
     overturned_displaced: bool
     lost_displaced: bool
+    lateral_confirm_mm: float = 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -306,5 +310,6 @@ class DamageSummary:
             f"thresholds: displaced >= {t.displaced_mm:.2f} mm "
             f"({t.displaced_mm / t.dn_mm:.2f} Dn, Dn = {t.dn_mm:.2f} mm), "
             f"moved >= {t.moved_mm:.2f} mm or >= {t.rotated_deg:.0f} deg, "
-            f"overturned >= {t.overturn_deg:.0f} deg"
+            f"overturned >= {t.overturn_deg:.0f} deg; a unit seen through one fiducial must "
+            f"move >= {t.lateral_confirm_mm:.2f} mm across the line of sight"
         )

@@ -6,7 +6,9 @@ codes), optionally with the fiducials' positions and face normals on the unit. W
 with a template, units are found automatically in the baseline (and in the current state):
 fiducials of different codes are grouped by proximity, never two of one code in a unit, and when
 the template gives positions (and normals) only pairs whose distance (and the rigid invariants of
-the two oriented fiducials) agree with the unit's own geometry are grouped.
+the two oriented fiducials) agree with the unit's own geometry are grouped. Every normal check
+allows for the circle pose's two-fold ambiguity (:func:`mirror_normals`): the pose estimator puts
+a sizeable share of normals on the wrong branch.
 
 Unit map YAML (lengths in mm, positions in the unit's own frame)::
 
@@ -256,6 +258,8 @@ def group_fiducials(
     nlen = np.linalg.norm(nrm, axis=1)
     has_n = np.isfinite(nlen) & (nlen > 0.5)
     nrm = np.where(has_n[:, None], nrm / np.where(has_n, nlen, 1.0)[:, None], 0.0)
+    # Either branch of each pose's two-fold normal ambiguity may be the true one.
+    branches = (nrm, mirror_normals(pos, nrm))
     tinv: dict[tuple[int, int], tuple[float, float, float]] = {}
     if template is not None:
         tp, tn = template.positions_mm, template.normals
@@ -280,10 +284,17 @@ def group_fiducials(
         score = abs(d - tdist[key]) / (tol_mm + 3.0 * sd)
         if key in tinv and has_n[i] and has_n[j]:
             # Rigid invariants of two oriented points: n_i.n_j and each normal against the
-            # direction between them (from i to j), to within ~15 deg.
+            # direction between them (from i to j), to within ~15 deg. A pose on the wrong
+            # branch must not split its unit, so mirrored normals may stand in; but four
+            # combinations make chance agreement likelier, so each mirror halves the tolerance.
             w = -u  # pos[j] - pos[i], normalised
-            seen = (float(nrm[i] @ nrm[j]), float(nrm[i] @ w), float(nrm[j] @ w))
-            err = max(abs(a - b) for a, b in zip(seen, tinv[key], strict=True))
+            err = np.inf
+            for (fi, ni), (fj, nj) in itertools.product(
+                enumerate(b[i] for b in branches), enumerate(b[j] for b in branches)
+            ):
+                seen = (float(ni @ nj), float(ni @ w), float(nj @ w))
+                e = max(abs(a - b) for a, b in zip(seen, tinv[key], strict=True))
+                err = min(err, e * 2.0 ** (fi + fj))
             score = max(score, err / normal_tol)
         return score
 
@@ -330,6 +341,130 @@ def _unit_normals(poses: Sequence[FiducialPose]) -> NDArray[np.float64] | None:
     return np.asarray(n / length[:, None], dtype=np.float64)
 
 
+def mirror_normals(
+    positions_mm: NDArray[np.float64], normals: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The other branch of each circle pose's two-fold normal ambiguity.
+
+    A single circle seen in perspective has two poses (:mod:`pose_estimator.conic_pose`) whose
+    normals share the slant to the viewing ray and differ in the sign of the tilt: to first order
+    (weak perspective) the second normal is the first mirrored about the line of sight,
+    ``2 (n . v) v - n`` with ``v`` the unit vector from the fiducial to the camera. The pose
+    estimator picks one branch, and on small or nearly fronto-parallel images it picks the wrong
+    one for a sizeable fraction of fiducials (about 30 % end to end in ``matcher_field``, where
+    this mirror lands within 1.5 deg of the truth for 95 % of them), so geometric checks on
+    normals must accept either branch.
+
+    Parameters
+    ----------
+    positions_mm : (k, 3) ndarray
+        Fiducial centres, camera frame (the camera at the origin).
+    normals : (k, 3) ndarray
+        Unit normals as estimated.
+
+    Returns
+    -------
+    (k, 3) ndarray
+        The mirrored unit normals.
+    """
+    p = np.asarray(positions_mm, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    v = -p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-12)
+    return np.asarray(2.0 * np.einsum("ki,ki->k", n, v)[:, None] * v - n, dtype=np.float64)
+
+
+def _branch_fit(
+    local: NDArray[np.float64],
+    seen: NDArray[np.float64],
+    w: NDArray[np.float64],
+    n_local: NDArray[np.float64],
+    n_seen: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Rigid fit ``seen ~ R local + t`` choosing each fiducial's normal branch.
+
+    The measured normals are kept when every one of them fits within 30 deg; otherwise every
+    combination of measured and mirrored normals (:func:`mirror_normals`) is fitted and the one
+    whose worst normal then agrees best with the rotated model wins (a mirror is a second
+    chance, not a free choice: with a stranger in the group it could make a wrong fit look
+    right). Returns ``R``, ``t`` and the chosen normals.
+    """
+    R, t = rigid_fit(local, seen, w, n_local, n_seen)
+    if np.all(np.einsum("ki,ki->k", n_local @ R.T, n_seen) >= np.cos(np.radians(30.0))):
+        return R, t, n_seen
+    alt = mirror_normals(seen, n_seen)
+    best: tuple[float, NDArray, NDArray, NDArray] | None = None
+    k = len(seen)
+    # Units carry a handful of fiducials: 2^k fits stay cheap (capped for safety).
+    flips = itertools.product((False, True), repeat=k) if k <= 6 else iter([(False,) * k])
+    for flip in flips:
+        n = np.where(np.asarray(flip)[:, None], alt, n_seen)
+        R, t = rigid_fit(local, seen, w, n_local, n)
+        worst = float(np.min(np.einsum("ki,ki->k", n_local @ R.T, n)))
+        if best is None or worst > best[0]:
+            best = (worst, R, t, n)
+    assert best is not None
+    return best[1], best[2], best[3]
+
+
+def _template_branches(
+    poses: Sequence[FiducialPose], normals: NDArray[np.float64], template: UnitSpec | None
+) -> NDArray[np.float64] | None:
+    """The poses' normals on the branches that fit the template, or None when it cannot tell.
+
+    Needs >= 3 poses whose codes have template positions and normals (with two, four branch
+    combinations can make a stranger fit), and a fit whose every normal then lies within 30 deg
+    of the rotated template's and whose points lie within 5 mm RMS.
+    """
+    if template is None or len(poses) < 3:
+        return None
+    codes = [int(p.code) for p in poses]
+    if not all(c in template.positions_mm and c in template.normals for c in codes):
+        return None
+    local = np.array([template.positions_mm[c] for c in codes])
+    n_local = np.array([template.normals[c] for c in codes])
+    seen = np.array([p.position_mm for p in poses], dtype=np.float64)
+    w = np.array([1.0 / max(float(np.trace(p.covariance_mm2)) / 3.0, 1e-6) for p in poses])
+    R, t, n_used = _branch_fit(local, seen, w, n_local, normals)
+    if np.any(np.einsum("ki,ki->k", n_local @ R.T, n_used) < np.cos(np.radians(30.0))):
+        return None
+    # The points must fit too (as in _unit_centre): a stranger among them makes any branch
+    # choice meaningless.
+    if np.sqrt(np.mean(np.sum((local @ R.T + t - seen) ** 2, axis=1))) > 5.0:
+        return None
+    return n_used
+
+
+def _pair_normals(
+    before: Sequence[FiducialPose], after: Sequence[FiducialPose], template: UnitSpec | None
+) -> tuple[NDArray[np.float64] | None, NDArray[np.float64] | None]:
+    """Normals of a unit's matched fiducials before and after, each on its likely branch.
+
+    Each side's branches are chosen by the template when it can tell
+    (:func:`_template_branches`); otherwise, per pair, the branches with the smallest turn
+    between before and after (a wrong branch shows as a spurious turn of about twice the slant).
+    ``(None, None)`` when a normal is unusable.
+    """
+    nb, na = _unit_normals(before), _unit_normals(after)
+    if nb is None or na is None:
+        return None, None
+    rb = _template_branches(before, nb, template)
+    ra = _template_branches(after, na, template)
+    if rb is not None and ra is not None:
+        return rb, ra
+    pb = np.array([p.position_mm for p in before], dtype=np.float64)
+    pa = np.array([p.position_mm for p in after], dtype=np.float64)
+    cand_b = (rb,) if rb is not None else (nb, mirror_normals(pb, nb))
+    cand_a = (ra,) if ra is not None else (na, mirror_normals(pa, na))
+    best_dot = np.full(len(before), -np.inf)
+    out_b, out_a = nb.copy(), na.copy()
+    for xb, xa in itertools.product(cand_b, cand_a):
+        dot = np.einsum("ki,ki->k", xb, xa)
+        better = dot > best_dot
+        best_dot = np.where(better, dot, best_dot)
+        out_b[better], out_a[better] = xb[better], xa[better]
+    return out_b, out_a
+
+
 def _unit_centre(poses: Sequence[FiducialPose], template: UnitSpec) -> NDArray[np.float64] | None:
     """The unit's own origin in the camera frame, from the template fitted to its fiducials.
 
@@ -347,10 +482,11 @@ def _unit_centre(poses: Sequence[FiducialPose], template: UnitSpec) -> NDArray[n
     w = np.array([1.0 / max(float(np.trace(p.covariance_mm2)) / 3.0, 1e-6) for p in sel])
     if n_seen is not None and has_tn:
         n_local = np.array([template.normals[int(p.code)] for p in sel])
-        R, t = rigid_fit(local, seen, w, n_local, n_seen)
-        # A pose on the wrong branch of the circle's two-fold ambiguity has a far-off normal:
-        # then the template cannot be trusted to locate the unit's origin.
-        if np.any(np.einsum("ki,ki->k", n_local @ R.T, n_seen) < np.cos(np.radians(30.0))):
+        # Each pose's normal may be on the wrong branch of the circle's two-fold ambiguity: the
+        # branches that fit the template best are used; a normal still far off means a grouping
+        # mistake, and then the template cannot be trusted to locate the unit's origin.
+        R, t, n_used = _branch_fit(local, seen, w, n_local, n_seen)
+        if np.any(np.einsum("ki,ki->k", n_local @ R.T, n_used) < np.cos(np.radians(30.0))):
             return None
     elif len(sel) >= 3:
         R, t = rigid_fit(local, seen, w)
@@ -510,7 +646,8 @@ def unit_motions(
             appeared_of[best] += 1
 
     out: list[UnitMotion] = []
-    normals = unit_map.template.normals if unit_map is not None and unit_map.template else {}
+    template = unit_map.template if unit_map is not None else None
+    normals = template.normals if template is not None else {}
     for n, (name, ix) in enumerate(unit_list):
         before_codes = {int(base[i].code) for i in ix}
         new_codes = tuple(sorted({int(cur[j].code) for j in cur_of[n]} - before_codes))
@@ -529,6 +666,7 @@ def unit_motions(
                 new_codes,
                 normals,
                 _centre_of(name, ix, base, unit_map, centres),
+                template,
             )
         )
     return tuple(out), tuple(unassigned)
@@ -548,6 +686,7 @@ def _motion_of_unit(
     new_codes: tuple[int, ...] = (),
     normals: dict[int, NDArray[np.float64]] | None = None,
     centre: NDArray[np.float64] | None = None,
+    template: UnitSpec | None = None,
 ) -> UnitMotion:
     """Motion of one unit from its matched fiducials (see :func:`unit_motions`).
 
@@ -618,19 +757,24 @@ def _motion_of_unit(
     after = np.array([d.after_mm for d in use], dtype=np.float64)
     sig = np.array([d.sigma_mm for d in use], dtype=np.float64).reshape(-1, 3)
     var = np.sum(sig**2, axis=1) / 3.0
-    turn = np.array([_turn(base[d.baseline_index], cur[d.current_index]) for d in use])
-    nb_all = _unit_normals([base[d.baseline_index] for d in use])
-    na_all = _unit_normals([cur[d.current_index] for d in use])
+    # Normals on their likely branches of the two-fold ambiguity (a wrong branch would fake a
+    # turn of twice the slant, and pull the rotation with it).
+    nb_all, na_all = _pair_normals(
+        [base[d.baseline_index] for d in use], [cur[d.current_index] for d in use], template
+    )
+    if nb_all is not None and na_all is not None:
+        turn = np.arccos(np.clip(np.einsum("ki,ki->k", nb_all, na_all), -1.0, 1.0))
+    else:
+        turn = np.array([_turn(base[d.baseline_index], cur[d.current_index]) for d in use])
     keep = (
         consistent_subset(before, after, sig, turn, rigid_tol_mm, nb_all, na_all)
         if same
         else list(range(len(use)))
     )
-    kept = [use[k] for k in keep]
     before, after, var = before[keep], after[keep], var[keep]
     w = 1.0 / np.maximum(var, 1e-6)
-    nb = _unit_normals([base[d.baseline_index] for d in kept])
-    na = _unit_normals([cur[d.current_index] for d in kept])
+    nb = nb_all[keep] if nb_all is not None else None
+    na = na_all[keep] if na_all is not None else None
     with_normals = bool(same) and nb is not None and na is not None
     rigid_ok = len(keep) >= 3 and np.linalg.matrix_rank(before - before.mean(axis=0), 1e-6) >= 2
     if (len(keep) >= 2 and with_normals) or rigid_ok:

@@ -546,7 +546,11 @@ def fit_design_circles(
         # ring design's annulus as one, finds more.
         weak[j] = len(g) == 1 and len(design.circles) > 1
     slow = np.flatnonzero(weak)
-    for j, g in zip(slow, _fit_ml(grey, seeds[slow], design, noise_std), strict=True):
+    # The profile fit, where it converged near its seed, seeds the model fit better than the
+    # boundary's moment ellipse (fewer Gauss-Newton steps).
+    near = first.ok[slow] & _plausible_rows(first.params[slow], seeds[slow])
+    start = np.where(near[:, None], first.params[slow], seeds[slow])
+    for j, g in zip(slow, _fit_ml(grey, start, design, noise_std), strict=True):
         out[j] = g
     return out
 
