@@ -5,6 +5,9 @@ Suzuki-Abe border following, a contour-tracing labeller in the family of Chang e
 boundary is reduced to the ellipse with the same area moments as the polygon it encloses, and
 everything after that is vectorised over all boundaries.
 
+Thin components that touch only at pixel corners (a steeply slanted ``dot`` design's dot and a
+code sector beside it) are also split into their 4-connected parts (:func:`_diagonal_parts`).
+
 Only *outer* boundaries are used: a fiducial's pose circle is the outer edge of a black region
 (the ``ring`` design's annulus, with whatever code sectors blur merges into it, or the ``dot``
 design's central dot), so neither holes nor merged inner parts disturb it.
@@ -103,6 +106,15 @@ def outer_boundaries(
     moments, length = _polygon_moments(kept)
     ell = _moment_ellipses(moments)
     keep = (length >= MIN_BOUNDARY_PX) & _size_ok(ell, max_extent)
+    split = keep & (ell[:, 6] < SPLIT_BELOW) & (ell[:, 3] <= SPLIT_MAX_MINOR_PX)
+    parts = _diagonal_parts(binary, kept, np.nonzero(split & (ell[:, 5] >= 2 * SPLIT_MIN_AREA))[0])
+    if parts:
+        # The merged boundary stays too (a thin ring may pass through such a contact itself).
+        kept += parts
+        moments, length = _polygon_moments(parts)
+        more = _moment_ellipses(moments)
+        ell = np.concatenate([ell, more])
+        keep = np.concatenate([keep, (length >= MIN_BOUNDARY_PX) & _size_ok(more, max_extent)])
     retry = np.nonzero(
         keep & (ell[:, 6] < HULL_RETRY_BELOW) & (2.0 * ell[:, 2] >= min_hull_extent)
     )[0].tolist()
@@ -116,6 +128,82 @@ def outer_boundaries(
     keep &= _size_ok(ell, max_extent)
     ell = ell[keep]
     return Boundaries(ell[:, 0:2], ell[:, 2:4], ell[:, 4], ell[:, 5], ell[:, 6])
+
+
+#: Boundaries less elliptical than this are split at diagonal-only contacts
+#: (:func:`_diagonal_parts`).
+SPLIT_BELOW = 0.85
+#: Largest semi-minor axis (pixels) of a boundary split so: a ``dot`` fiducial's dot touches its
+#: track only when seen so obliquely that the gap between them is under two pixels, the dot's
+#: semi-minor axis then under about 2.5 px, and the merged component's under about 5 px (the
+#: code sectors and rings of the 400-target speed frames are wider and are not searched).
+SPLIT_MAX_MINOR_PX = 6.0
+#: Smallest part (pixels) kept from such a split.
+SPLIT_MIN_AREA = 4
+
+
+def _diagonal_parts(
+    binary: NDArray[np.uint8], polygons: list[NDArray[Any]], which: NDArray[np.intp]
+) -> list[NDArray[Any]]:
+    """Outer boundaries of the 4-connected parts of components ``which`` that touch each other
+    only diagonally.
+
+    Border following joins black pixels through their corners (8-connectivity). Two dark
+    strokes running diagonally one white pixel apart then touch at a pixel corner and are
+    traced as one component: the ``dot`` design's central dot and a code sector beside it, a
+    pixel and a half apart on a 35 px fiducial slanted 70 deg (through a gap as white as the
+    paper), whose merged boundary is neither elliptical nor centred on the dot. A contact that
+    joins two parts into one outer boundary lies on that boundary (both of its pixels have
+    white 4-neighbours outside), so only boundary pixels are tested, vectorised over all
+    boundaries ``which``; the few components with a contact are labelled again with
+    4-connectivity in their bounding box.
+
+    Returns
+    -------
+    list of (n_i, 1, 2) int32 arrays
+        Compressed outer chains ``(u, v)`` of the parts (at least two per split component, each
+        at least :data:`SPLIT_MIN_AREA` pixels), as ``cv2.findContours`` gives them.
+    """
+    if which.size == 0:
+        return []
+    chains = [polygons[i] for i in which.tolist()]
+    fu, fv, idx, _ = _chain_pixels(chains)
+    u, v = fu.astype(np.intp), fv.astype(np.intp)
+    h, w = binary.shape
+    flat = binary.reshape(-1)
+    # A contact below pixel (u, v): (u +- 1, v + 1) black, (u +- 1, v) and (u, v + 1) white.
+    pix = v * w + u
+    below = np.flatnonzero(v + 1 < h)
+    below = below[flat[pix[below] + w] == 0]
+    contact = np.zeros(len(u), dtype=bool)
+    for side in (-1, 1):
+        on = below[(u[below] + side >= 0) & (u[below] + side < w)]
+        side_pix = pix[on] + side
+        contact[on[(flat[side_pix + w] != 0) & (flat[side_pix] == 0)]] = True
+    out: list[NDArray[Any]] = []
+    starts = np.searchsorted(idx, np.arange(len(chains) + 1))
+    for j in np.unique(idx[contact]).tolist():
+        x, y, bw, bh = cv2.boundingRect(chains[j])
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(
+            binary[y : y + bh, x : x + bw], connectivity=4
+        )
+        if n < 3:
+            continue
+        # Parts of this component: the 4-connected labels its boundary pixels carry.
+        mine = slice(starts[j], starts[j + 1])
+        hit = np.bincount(labels[v[mine] - y, u[mine] - x], minlength=n)
+        own = np.flatnonzero((hit > 0) & (stats[:, cv2.CC_STAT_AREA] >= SPLIT_MIN_AREA))
+        if len(own) < 2:
+            continue
+        for k in own.tolist():
+            found, _ = cv2.findContours(
+                (labels == k).view(np.uint8),
+                cv2.RETR_EXTERNAL,
+                cv2.CHAIN_APPROX_SIMPLE,
+                offset=(x, y),
+            )
+            out.extend(found)
+    return out
 
 
 #: Green's-theorem weights turning the edge sums into moments (as ``cv2.moments`` scales them).
@@ -228,11 +316,13 @@ def _size_ok(ell: NDArray[np.float64], max_extent: float) -> NDArray[np.bool_]:
     return (ell[:, 5] > 2.0) & (perimeter >= MIN_BOUNDARY_PX) & (2.0 * a <= max_extent)
 
 
-def _on_ellipse(polygons: list[NDArray[Any]], rows: NDArray[np.float64]) -> NDArray[np.float64]:
-    """For each boundary, the fraction of its pixels between 0.55 and 1.12 times the radius of
-    its ellipse ``rows[i]`` (vectorised over all pixels of all boundaries).
+def _chain_pixels(
+    polygons: list[NDArray[Any]],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp], NDArray[np.int64]]:
+    """Every pixel ``(u, v)`` of compressed boundary chains (vectorised over all of them).
 
-    The boundaries come as compressed chains (straight runs); every pixel of each run counts.
+    Returns the pixels' columns and rows, the index of the polygon each belongs to, and each
+    polygon's pixel count.
     """
     counts = np.fromiter(map(len, polygons), dtype=np.int64, count=len(polygons))
     ends = np.cumsum(counts)
@@ -249,6 +339,16 @@ def _on_ellipse(polygons: list[NDArray[Any]], rows: NDArray[np.float64]) -> NDAr
     pv = vert[1, src] + unit[1, src] * k
     pixels = np.add.reduceat(run, ends - counts)
     idx = np.repeat(np.arange(len(polygons)), pixels)
+    return pu, pv, idx, pixels
+
+
+def _on_ellipse(polygons: list[NDArray[Any]], rows: NDArray[np.float64]) -> NDArray[np.float64]:
+    """For each boundary, the fraction of its pixels between 0.55 and 1.12 times the radius of
+    its ellipse ``rows[i]`` (vectorised over all pixels of all boundaries).
+
+    The boundaries come as compressed chains (straight runs); every pixel of each run counts.
+    """
+    pu, pv, idx, pixels = _chain_pixels(polygons)
     du, dv = pu - rows[idx, 0], pv - rows[idx, 1]
     c, s = np.cos(rows[:, 4])[idx], np.sin(rows[:, 4])[idx]
     x = (du * c + dv * s) / rows[idx, 2]

@@ -6,7 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from fiducial_detector.components import _on_ellipse, _polygon_moments, outer_boundaries
+from fiducial_detector.components import (
+    _diagonal_parts,
+    _on_ellipse,
+    _polygon_moments,
+    outer_boundaries,
+)
 
 
 def _ellipse_mask(shape: tuple[int, int], centre, axes, angle_deg, thickness=-1):  # type: ignore[no-untyped-def]
@@ -90,3 +95,56 @@ def test_on_ellipse_counts_every_pixel_of_compressed_runs() -> None:
             (d[:, 0] * co + d[:, 1] * si) / row[2], (d[:, 1] * co - d[:, 0] * si) / row[3]
         )
         assert frac == pytest.approx(np.mean((rho > 0.55) & (rho < 1.12)), abs=1e-12)
+
+
+def test_dot_touching_a_stroke_diagonally_is_split_out() -> None:
+    """A thin dot whose corner touches a parallel stroke's (a slanted ``dot`` fiducial's dot and
+    a code sector one white pixel apart) is one 8-connected component, whose boundary is
+    neither elliptical nor centred on the dot; its 4-connected parts come out as well, the dot
+    with the same moment ellipse as when drawn alone."""
+    centre = np.array([30.3, 29.8])
+    normal = np.array([-np.sin(np.radians(45.0)), np.cos(np.radians(45.0))])
+    dot = _ellipse_mask((60, 60), centre, (6.0, 2.0), 45.0)
+    bar = _ellipse_mask((60, 60), centre + 4.75 * normal, (11.0, 1.6), 45.0)
+    both = dot | bar
+    assert not (dot & bar).any()
+    assert cv2.connectedComponents(both, connectivity=8)[0] == 2  # background + one
+    assert cv2.connectedComponents(both, connectivity=4)[0] == 3
+    alone = outer_boundaries(dot, max_extent=60)
+    b = outer_boundaries(both, max_extent=60)
+    assert len(b) == 3  # the merged boundary, the dot, the stroke
+    near = np.hypot(*(b.centre - alone.centre[0]).T) < 1e-9
+    assert near.sum() == 1
+    assert np.allclose(b.axes[near], alone.axes, atol=1e-9)
+    assert b.ellipticity[near][0] > 0.9
+    # The merged boundary alone is what the 8-connected tracing gives: centred off the dot.
+    assert np.hypot(*(b.centre[~near] - centre).T).max() > 1.5
+
+
+def test_diagonal_parts_are_the_four_connected_components() -> None:
+    """Every part split off is exactly one 4-connected component of the image (same moments),
+    at least two come from each split component, and components without diagonal contacts
+    (filled ellipses drawn apart) give none."""
+    rng = np.random.default_rng(9)
+    total = 0
+    for _ in range(10):
+        img = _random_binary(rng)
+        contours, hierarchy = cv2.findContours(img, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+        outer = [c for c, h in zip(contours, hierarchy[0], strict=True) if h[3] < 0]
+        parts = _diagonal_parts(img, outer, np.arange(len(outer)))
+        _, labels = cv2.connectedComponents(img, connectivity=4)
+        for part in parts:
+            p = part.reshape(-1, 2)
+            label = labels[p[0, 1], p[0, 0]]
+            assert label > 0
+            own, _ = cv2.findContours(
+                (labels == label).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE
+            )
+            assert len(own) == 1
+            assert cv2.moments(own[0]) == cv2.moments(part)
+        total += len(parts)
+    assert total >= 10
+    apart = _ellipse_mask((60, 80), (20.0, 30.0), (8.0, 3.0), 30.0)
+    apart |= _ellipse_mask((60, 80), (50.0, 30.0), (8.0, 3.0), 30.0)
+    contours, _ = cv2.findContours(apart, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    assert _diagonal_parts(apart, list(contours), np.arange(len(contours))) == []
