@@ -10,7 +10,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from armourcam.render import RenderedScene, Target, render, rotation_from_slant_tilt
-from fiducial_detector.ellipse import ellipse_from_conic
+from fiducial_detector.ellipse import ellipse_from_conic, fit_ellipse
+from fiducial_detector.types import Ellipse
 from pose_estimator.camera import CameraModel
 
 FOCAL = 2000.0
@@ -39,6 +40,22 @@ def coarse_seed(truth: NDArray[np.float64], rng: np.random.Generator) -> NDArray
     seed = truth + np.r_[rng.normal(0, 0.4, 2), rng.normal(0, 0.3, 2), rng.normal(0, 0.02)]
     seed[2:4] = np.sort(seed[2:4])[::-1]
     return seed
+
+
+def dual_conic_radius_error(
+    scene: RenderedScene, seed: NDArray[np.float64], noise_std: float
+) -> float:
+    """Mean semi-axis error of the paper's dual-conic fit of the pose circle from ``seed``."""
+    e = fit_ellipse(
+        scene.image,
+        Ellipse((seed[0], seed[1]), seed[2], seed[3], seed[4], np.zeros((5, 5)), 1.0),
+        radius=1.0,
+        dark_inside=True,
+        noise_std=noise_std,
+    )
+    assert e is not None
+    truth = true_ellipse(scene, 0)
+    return 0.5 * (e.semi_major + e.semi_minor - truth[2] - truth[3])
 
 
 def abs_errors(params: NDArray[np.float64], truth: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fit_scenes import abs_errors, coarse_seed, render_one, true_ellipse
+from fit_scenes import (
+    abs_errors,
+    coarse_seed,
+    dual_conic_radius_error,
+    render_one,
+    true_ellipse,
+)
 
 from fiducial_detector.design import get_design
 from fiducial_detector.detect import fit_design_circles
-from fiducial_detector.ellipse import fit_ellipse
 from fiducial_detector.errors import DetectorError
 from fiducial_detector.profile_fit import refine_by_profiles
-from fiducial_detector.types import Ellipse
 
 #: The ring design's pose circle: half-way to the annulus' inner edge and to the paper's edge.
 RING_RHO = (0.9, 1.15)
@@ -41,15 +45,7 @@ def test_mean_radius_is_unbiased_at_high_noise() -> None:
         fit = refine_by_profiles(scene.image, seed[None], dark_inside=True, rho_range=RING_RHO)
         assert fit.ok[0]
         prof.append(0.5 * (fit.params[0, 2] + fit.params[0, 3] - truth[2] - truth[3]))
-        e = fit_ellipse(
-            scene.image,
-            Ellipse((seed[0], seed[1]), seed[2], seed[3], seed[4], np.zeros((5, 5)), 1.0),
-            radius=1.0,
-            dark_inside=True,
-            noise_std=0.02 * 255,
-        )
-        assert e is not None
-        dual.append(0.5 * (e.semi_major + e.semi_minor - truth[2] - truth[3]))
+        dual.append(dual_conic_radius_error(scene, seed, 0.02 * 255))
     assert abs(np.mean(prof)) < 0.01
     assert np.mean(dual) < -0.03
 
