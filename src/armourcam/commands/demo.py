@@ -245,7 +245,7 @@ def _print_table(runs: list[dict[str, Any]], truth: dict[str, Any] | None) -> No
     truth_runs = {r["run_id"]: r for r in (truth or {}).get("runs", [])}
     head = (
         f"{'run':<10} {'ref':<11} {'settled':<7} {'matched':>7} {'wrong':>5} "
-        f"{'displaced':>9} {'truth':>5} {'moved':>5} {'err med':>8} {'err p95':>8}"
+        f"{'displaced':>9} {'truth':>5} {'lost':>4} {'moved':>5} {'err med':>8} {'err p95':>8}"
     )
     print(head)
     print("-" * len(head))
@@ -268,9 +268,10 @@ def _print_table(runs: list[dict[str, Any]], truth: dict[str, Any] | None) -> No
             print(
                 f"{run['run_id']:<10} {ref:<11} {rep.get('settled')!s:<7} {matched:>7} "
                 f"{wrong:>5} {summ.get('displaced_units', '-')!s:>9} {truth_n:>5} "
-                f"{summ.get('moved_units', '-')!s:>5} {errs}"
+                f"{summ.get('lost_units', '-')!s:>4} {summ.get('moved_units', '-')!s:>5} {errs}"
             )
     print(
         "matched: fiducial pairs; wrong: pairs whose displacement is > 2 mm off the truth; "
-        "err: |measured - true displacement| per pair, mm; displaced/truth: units >= 1 Dn"
+        "err: |measured - true displacement| per pair, mm; displaced/truth: units >= 1 Dn; "
+        "lost: units none of whose fiducials could be found again (not counted as displaced)"
     )
