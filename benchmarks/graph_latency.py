@@ -110,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
             }
         )
     )
+    graph.use_dds_profile()  # this process publishes the frames: the graph's transport settings
     procs = graph.launch_processes(str(params), log_dir=tmp / "logs")
     rclpy.init()
     node = rclpy.create_node("armourcam_bench")

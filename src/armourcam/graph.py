@@ -218,6 +218,28 @@ def stamp_seconds(stamp: Any) -> float:
     return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
 
 
+#: Fast DDS participant profile shipped with the package (a shared-memory segment that holds whole
+#: 6 MP frames; see the file's comment).
+DDS_PROFILE = Path(__file__).with_name("fastdds.xml")
+#: Free ``/dev/shm`` the profile needs: a 64 MB segment for each of a handful of processes.
+_DDS_SHM_NEEDED = 1 << 30
+
+
+def use_dds_profile() -> None:
+    """Point Fast DDS at :data:`DDS_PROFILE` for participants this process creates from now on,
+    unless ``FASTDDS_DEFAULT_PROFILES_FILE`` is already set (a rig's own DDS configuration
+    wins) or ``/dev/shm`` has too little room for the segments (a container's 64 MB default:
+    Fast DDS' own small segments are used then). Child processes inherit it."""
+    if "FASTDDS_DEFAULT_PROFILES_FILE" in os.environ:
+        return
+    try:
+        st = os.statvfs("/dev/shm")
+    except OSError:
+        return
+    if st.f_bavail * st.f_frsize >= _DDS_SHM_NEEDED:
+        os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(DDS_PROFILE)
+
+
 def _run_nodes(
     argv: Sequence[str],
     factories: Sequence[Callable[[], Node]],
@@ -228,6 +250,7 @@ def _run_nodes(
     A node whose parameters are invalid raises :class:`GraphError` in its constructor; that ends
     the process with status 2 and a one-line error, before any topic is touched.
     """
+    use_dds_profile()
     rclpy.init(args=list(argv))
     executor = make_executor()
     nodes: list[Node] = []
@@ -573,6 +596,7 @@ def replay_bag(
 
     if rate is not None and rate <= 0:
         raise GraphError(f"rate must be > 0, got {rate}")
+    use_dds_profile()
     rclpy.init(args=["armourcam-replay", "--ros-args", *ros_args])
     node = rclpy.create_node("armourcam_replay")
     executor = SingleThreadedExecutor()
@@ -705,6 +729,7 @@ def record_topics(
     """
     from armourcam import bagio
 
+    use_dds_profile()
     rclpy.init(args=["armourcam-record", "--ros-args", *ros_args])
     node = rclpy.create_node("armourcam_record")
     counts: dict[str, int] = dict.fromkeys(topics, 0)

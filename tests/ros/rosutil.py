@@ -98,6 +98,9 @@ class Probe:
     """An rclpy node in the test process with its own context."""
 
     def __init__(self) -> None:
+        from armourcam.graph import use_dds_profile
+
+        use_dds_profile()  # the graph's own transport settings (shared memory for frames)
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node(f"probe_{os.getpid()}", context=self.context)
