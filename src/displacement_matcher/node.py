@@ -278,7 +278,7 @@ class DisplacementMatcherNode(Node):
         if s.baseline is not None:
             self.get_logger().info(
                 f"resumed from {cfg.data_dir}: baseline of {len(s.baseline.poses)} fiducials, "
-                f"{len(s.runs)} runs"
+                f"{s.runs_completed} runs"
             )
             self._publish_baseline()
         if s.runs:

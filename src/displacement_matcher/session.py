@@ -47,6 +47,9 @@ from pose_estimator.types import FiducialPose
 FORMAT_VERSION = 1
 #: The run in progress, beside ``baseline.json`` and ``runs/`` in the data directory.
 SESSION_STATE_FILE = "session.json"
+#: Completed runs held in memory (the last one is republished, the latest with poses is the
+#: reference of the next incremental report); all of them are on disk.
+RUNS_IN_MEMORY = 4
 
 Fuser = Callable[[Sequence[Sequence[FiducialPose]]], list[FiducialPose]]
 Comparer = Callable[[Sequence[FiducialPose], Sequence[FiducialPose]], "Comparison"]
@@ -314,7 +317,10 @@ class Session:
         self._fuse: Fuser = fuse if fuse is not None else default_fuse
         self._compare: Comparer = compare if compare is not None else compare_poses
         self.baseline: Baseline | None = None
+        # The most recent runs (every run is on disk in data_dir): a rig that measures runs for
+        # weeks must not hold them all.
         self.runs: list[RunRecord] = []
+        self.runs_completed = 0
         self.frames_seen = 0
         self.frames_dropped = 0
         self.last_frame_fiducials = 0
@@ -417,7 +423,7 @@ class Session:
         else:
             self._window.clear()
         self._current_run_id_auto = self._pending_run_id is None
-        self._current_run_id = self._pending_run_id or f"run-{len(self.runs) + 1:03d}"
+        self._current_run_id = self._pending_run_id or f"run-{self.runs_completed + 1:03d}"
         self._pending_run_id = None
         self.phase = Phase.RUN_ACTIVE
         self._save_state()
@@ -461,7 +467,7 @@ class Session:
                 events += self._begin_deferred_run()
             return events
         wants_baseline = self._capture_requested or (
-            self.baseline is None and self.config.auto_baseline and not self.runs
+            self.baseline is None and self.config.auto_baseline and self.runs_completed == 0
         )
         if wants_baseline and self._settled(self.config.baseline_frames):
             reason = "command" if self._capture_requested else "auto"
@@ -489,7 +495,7 @@ class Session:
             "current_run_id": self._current_run_id or "",
             "baseline_fiducials": str(len(self.baseline.poses)) if self.baseline else "none",
             "baseline_frames": str(self.baseline.n_frames) if self.baseline else "0",
-            "runs_completed": str(len(self.runs)),
+            "runs_completed": str(self.runs_completed),
             "last_run_id": last.run_id if last else "",
             "frames_seen": str(self.frames_seen),
             "frames_dropped": str(self.frames_dropped),
@@ -556,7 +562,7 @@ class Session:
         if not (settled or force or self._settle_count >= cfg.settle_timeout_frames):
             return []
         frames = self._last_frames(cfg.settle_frames)
-        run_id = self._current_run_id or f"run-{len(self.runs) + 1:03d}"
+        run_id = self._current_run_id or f"run-{self.runs_completed + 1:03d}"
         events: list[Event] = []
         if not frames:
             events.append(Notice("error", f"run {run_id}: no frame after the run to measure"))
@@ -589,14 +595,16 @@ class Session:
         )
         report.update(
             run_id=run_id,
-            sequence=len(self.runs) + 1,
+            sequence=self.runs_completed + 1,
             settled=settled,
             frames_fused=len(frames),
             stamp_s=frames[-1][1] if frames else None,
             incremental=incremental,
         )
-        run = RunRecord(run_id, len(self.runs) + 1, after, report, markers, rows)
+        run = RunRecord(run_id, self.runs_completed + 1, after, report, markers, rows)
         self.runs.append(run)
+        self.runs_completed += 1
+        del self.runs[:-RUNS_IN_MEMORY]
         self._save_run(run)
         self._current_run_id = None
         self._window.clear()
@@ -723,6 +731,8 @@ class Session:
                 except (KeyError, TypeError, ValueError) as err:
                     raise SessionError(f"{run_path}: malformed run record: {err}") from err
             self.runs.sort(key=lambda r: r.sequence)
+            self.runs_completed = max((r.sequence for r in self.runs), default=0)
+            del self.runs[:-RUNS_IN_MEMORY]
         state = data_dir / SESSION_STATE_FILE
         if state.exists():
             self._load_state(state)

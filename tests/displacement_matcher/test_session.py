@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from displacement_matcher.session import (
+    RUNS_IN_MEMORY,
     BaselineCaptured,
     Event,
     Phase,
@@ -436,3 +437,30 @@ def test_frames_agree(rng: np.random.Generator) -> None:
     assert not frames_agree(a, frame(truth, rng, drop=20), 0.5, 0.9)
     assert frames_agree([], [], 0.5, 0.9)
     assert not frames_agree(a, [], 0.5, 0.9)
+
+
+def test_memory_holds_the_latest_runs_and_the_disk_all_of_them(
+    tmp_path: Path, rng: np.random.Generator
+) -> None:
+    """Twice RUNS_IN_MEMORY runs: the session holds only the latest, numbers them on, keeps the
+    incremental report against the run before, and a restart resumes the count from disk."""
+    truth = scene(12)
+    s = make(tmp_path, baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth, rng) for _ in range(2)], 0.0)
+    n = 2 * RUNS_IN_MEMORY
+    for k in range(n):
+        t = 10.0 * (k + 1)
+        s.set_run_id(f"W{k}")
+        s.set_run_active(True, t)
+        s.set_run_active(False, t + 1.0)
+        truth = moved(truth, [k % 3], [0.5, 0.0, 0.0])
+        (done,) = of_type(feed(s, [frame(truth, rng) for _ in range(2)], t + 2.0), RunCompleted)
+        assert done.run.sequence == k + 1
+        if k:
+            assert done.run.report["incremental"] is not None
+    assert s.runs_completed == n
+    assert [r.run_id for r in s.runs] == [f"W{k}" for k in range(n - RUNS_IN_MEMORY, n)]
+    assert len(list((tmp_path / "runs").glob("*.json"))) == n
+    again = make(tmp_path, baseline_frames=2, settle_frames=2)
+    assert again.runs_completed == n and len(again.runs) == RUNS_IN_MEMORY
+    assert again.status()["runs_completed"] == str(n)
