@@ -1,22 +1,29 @@
 """Sub-pixel ellipses from edge profiles sampled along the normals (paper step 3, fast form).
 
 Each edge is sampled along short lines normal to its current ellipse, about one line per pixel of
-arc, by bilinear interpolation (``cv2.remap``, one call for every edge of every fiducial). Along
-each line the edge's position is the centroid of the intensity derivative, which telescopes to
-the area (zeroth-moment) edge locator: unbiased for any symmetric blur whose tails the window
-holds, linear in the noise, and independent of the sampling step once the step is below about
-twice the blur. A blurred curved edge's centroid lies ``kappa s^2 / 2`` inside the true edge
-(heat-equation argument: the blur takes ``s^2 / 2R`` of the step's area out of a radial line),
-with ``s^2`` the total smoothing variance (optics, pixel integration, interpolation), which the
-lines' second moments measure; the positions are corrected by it. The five ellipse parameters then
-follow by linear least squares on the positions (the signed distance's derivatives in the
-quadratic-form parametrisation of :mod:`.edge_fit`), twice: the second pass re-centres every
-window on the first pass' ellipse so no tail is cut. The covariance is the least-squares one with
-the variance of the positions measured from their own residuals, so compression artefacts and
-model misfit widen it without an image-noise estimate.
+arc, by bilinear interpolation (``cv2.remap``, one call for every edge of every fiducial), with
+:data:`SAMPLES` samples spread over each line's window. Along each line the edge's position is
+the centroid of the intensity derivative, which telescopes to the area (zeroth-moment) edge
+locator: linear in the intensities (so no errors-in-variables shrinkage) and independent of the
+sampling step once the step is below about twice the blur.
 
-Lines where another printed edge comes within the window (``rho_range``, as in :mod:`.edge_fit`)
-are not used: on an oblique fiducial that drops the thin side of an annulus.
+Windows stop half-way to the design's neighbouring printed edges (``rho_range``, as in
+:mod:`.edge_fit`) and, in the final passes, at :data:`_WINDOW_SPREADS` spreads of the derivative
+profile (every sample in a window adds noise). The centroid of a window-truncated Gaussian profile
+is corrected to first order in the edge's offset (truncated-normal mean and variance); lines whose
+window holds less than :data:`_MIN_WINDOW_SPREADS` spreads on either side (the thin side of an
+oblique annulus) are not used. A blurred curved edge's centroid lies ``kappa s^2 / 2`` inside the
+true edge (heat-equation argument: the blur takes ``s^2 / 2R`` of the step's area out of a radial
+line), with ``s^2`` the image's total smoothing variance, measured from the lines' second moments
+in a first, sparse pass with wide windows; the positions are corrected by it.
+
+The five ellipse parameters follow by linear least squares on the positions (the signed
+distance's derivatives in the quadratic-form parametrisation of :mod:`.edge_fit`), with one
+re-solve without lines beyond :data:`_OUTLIER_SDS` sds, pass after pass until the ellipse moves
+less than :data:`_CONVERGED_PX`. The covariance is the least-squares one with the positions'
+variance measured from their own residuals (times :data:`_CORRELATION` for neighbouring lines
+sharing pixels), so compression artefacts and model misfit widen it without an image-noise
+estimate.
 """
 
 from __future__ import annotations
