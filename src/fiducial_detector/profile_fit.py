@@ -67,8 +67,8 @@ _START_BLUR = 0.8
 _SPARSE = 3
 #: A fit whose last pass moved it less than this (pixels) has converged.
 _CONVERGED_PX = 0.05
+#: Columns of the folded remap maps (remap takes maps of fewer than 32767 rows and columns).
 _FOLD = 4096
-_CURV = 1.0
 #: Fits per padded block.
 _BLOCK = 256
 _INV_SQRT_2PI = float(1.0 / np.sqrt(2.0 * np.pi))
@@ -293,7 +293,7 @@ def _pass(
     good &= (height > 0.5 * typical[:, None]) & (height < 1.5 * typical[:, None])
     # A blurred curved edge's centroid lies kappa s^2 / 2 inside it; then the linearised
     # distance d_new(origin) = jac . delta = -t.
-    t = np.where(good, pos + _CURV * 0.5 * lines.kappa * blur[:, None] ** 2, 0.0)
+    t = np.where(good, pos + 0.5 * lines.kappa * blur[:, None] ** 2, 0.0)
     delta, cov_f, rms, used = _solve(lines.jac, t, good)
     ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
     theta = np.zeros((k, 5))
