@@ -601,20 +601,19 @@ def _fit_profiles(
     r0 = design.pose_circle.radius
     near = first.ok[rows] & _plausible_rows(first.params[rows], seeds)
     fitted = _ellipses(first, r0, rows, near)
-    pose = _with_fallback(grey, seeds, design, noise, fitted, checked=True)
+    pose = _with_fallback(grey, seeds, design, noise, fitted)
     groups: list[list[Ellipse]] = [[e] if e is not None else [] for e in pose]
     found = [j for j, e in enumerate(pose) if e is not None]
     if not found or len(design.circles) < 2:
         return [tuple(g) for g in groups]
     base = np.array([_parameters(pose[j]) for j in found])  # type: ignore[arg-type]
     blur = first.spread[rows[found]]
-    everything = np.arange(len(found))
     for k in range(1, len(design.circles)):
         inner = base.copy()
         inner[:, 2:4] *= design.circles[k].radius / r0
         res = _profile_circle(src, design, k, inner, blur)
         keep = res.ok & _plausible_rows(res.params, inner)
-        fits = _ellipses(res, design.circles[k].radius, everything, keep)
+        fits = _ellipses(res, design.circles[k].radius, keep=keep)
         for j, e in zip(found, fits, strict=True):
             if e is not None:
                 groups[j].append(e)
@@ -622,7 +621,8 @@ def _fit_profiles(
 
 
 def _plausible_rows(fits: NDArray[Any], seeds: NDArray[Any]) -> NDArray[np.bool_]:
-    """:func:`_plausible` for ``(n, 5)`` rows of fits and seeds at once (NaN: not plausible)."""
+    """Fits that stayed near their seeds, ``(n, 5)`` rows each (conservative thresholds on
+    ellipse properties, step 3; NaN: not plausible)."""
     tol = 0.25 * seeds[:, 3] + 1.5
     with np.errstate(invalid="ignore"):
         near = np.hypot(fits[:, 0] - seeds[:, 0], fits[:, 1] - seeds[:, 1]) < tol
@@ -656,15 +656,11 @@ def _with_fallback(
     design: FiducialDesign,
     noise: float,
     pose: list[Ellipse | None],
-    *,
-    checked: bool = False,
 ) -> list[Ellipse | None]:
-    """Pose ellipses, with the gradient dual-conic fit where a fit failed or strayed from its
-    seed (a seed too far off; ``checked``: the given fits are known to be near)."""
+    """Pose ellipses, with the gradient dual-conic fit where ``pose`` has None: where a fit
+    failed or strayed from its seed (a seed too far off)."""
     pose = list(pose)
-    failed = [
-        j for j, e in enumerate(pose) if e is None or not (checked or _plausible(e, seeds[j]))
-    ]
+    failed = [j for j, e in enumerate(pose) if e is None]
     if failed:
         fallback = fit_ellipses(
             grey,
@@ -746,8 +742,8 @@ def _fit_edge_model(
         inner = base.copy()
         inner[:, 2:4] *= design.circles[k].radius / r0
         fits = _refine_circle(grey, noise, design, k, inner)
-        for j, e, s in zip(found, fits, inner, strict=True):
-            if e is not None and _plausible(e, s):
+        for j, e in zip(found, fits, strict=True):
+            if e is not None:
                 groups[j].append(e)
     return [tuple(g) for g in groups]
 
@@ -775,18 +771,16 @@ def _refine_annulus(
             1.0 + 0.5 * (outside - c_out.radius) / c_out.radius,
         ),
     )
-    pose = _ellipses(fo, c_out.radius)
-    second = [
-        e if e is not None and _plausible(e, s) else None
-        for e, s in zip(_ellipses(fi, c_in.radius), inner_seeds, strict=True)
-    ]
+    pose = _ellipses(fo, c_out.radius, keep=_plausible_rows(fo.params, outer_seeds))
+    second = _ellipses(fi, c_in.radius, keep=_plausible_rows(fi.params, inner_seeds))
     return pose, second
 
 
 def _refine_circle(
     grey: NDArray[np.generic], noise: float, design: FiducialDesign, k: int, seeds: NDArray[Any]
 ) -> list[Ellipse | None]:
-    """Maximum-likelihood fits of circle ``k`` of ``design`` from ``(n, 5)`` seeds."""
+    """Maximum-likelihood fits of circle ``k`` of ``design`` from ``(n, 5)`` seeds (None where a
+    fit failed or strayed from its seed)."""
     circle = design.circles[k]
     inner, outer = design.neighbour_edges(circle.radius)
     r = circle.radius
@@ -798,7 +792,7 @@ def _refine_circle(
         band_px=EDGE_BAND_PX,
         rho_range=(1.0 - 0.5 * (r - inner) / r, 1.0 + 0.5 * (outer - r) / r),
     )
-    return _ellipses(fits, r)
+    return _ellipses(fits, r, keep=_plausible_rows(fits.params, seeds))
 
 
 def _ellipses(
@@ -855,17 +849,10 @@ def _scaled_seed(cands: _Candidates, i: int, scale: float, dr2: float) -> Ellips
 
 
 def _plausible(fit: Ellipse, seed: Ellipse | NDArray[Any]) -> bool:
-    """A fit that stayed near its seed (conservative thresholds on ellipse properties, step 3).
-
-    ``seed`` is an :class:`Ellipse` or its ``(u, v, a, b, angle)`` row.
-    """
-    u, v, a, b, _ = _parameters(seed) if isinstance(seed, Ellipse) else seed
-    tol = 0.25 * b + 1.5
-    return bool(
-        np.hypot(fit.center_px[0] - u, fit.center_px[1] - v) < tol
-        and abs(fit.semi_major - a) < tol
-        and abs(fit.semi_minor - b) < tol
-    )
+    """:func:`_plausible_rows` for one fitted Ellipse; ``seed`` is an :class:`Ellipse` or its
+    ``(u, v, a, b, angle)`` row."""
+    row = _parameters(seed) if isinstance(seed, Ellipse) else seed
+    return bool(_plausible_rows(np.array([_parameters(fit)]), np.array([row], dtype=float))[0])
 
 
 def _drift(fits: tuple[Ellipse, ...], r0: float) -> NDArray[np.float64]:

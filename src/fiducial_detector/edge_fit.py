@@ -150,13 +150,8 @@ def refine_ellipses(
     DetectorError
         If the image is not 2-D, the seeds are not ``(n, 5)``, or a parameter is out of range.
     """
-    seeds = np.asarray(seeds, dtype=np.float64)
-    if seeds.ndim != 2 or seeds.shape[1] != 5:
-        raise DetectorError(
-            f"seeds must be an (n, 5) array of (u, v, a, b, angle), got {seeds.shape}"
-        )
-    n = seeds.shape[0]
-    polarity = np.where(np.broadcast_to(np.asarray(dark_inside, dtype=bool), (n,)), 1.0, -1.0)
+    seeds = checked_seeds(seeds)
+    polarity = polarity_signs(dark_inside, seeds.shape[0])
     return _refine(
         image, seeds[:, None, :], (1.0,), polarity, noise_std, band_px, rho_range, iterations
     )[0]
@@ -230,6 +225,37 @@ def refine_annuli(
     return fits[0], fits[1]
 
 
+def checked_image(image: NDArray[Any]) -> NDArray[Any]:
+    """``image`` as an array, which must be 2-D (grey)."""
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise DetectorError(f"image must be 2-D (grey), got shape {img.shape}")
+    return img
+
+
+def checked_seeds(seeds: NDArray[Any]) -> NDArray[np.float64]:
+    """``seeds`` as an ``(n, 5)`` float array of ``(u, v, a, b, angle)`` rows."""
+    out = np.asarray(seeds, dtype=np.float64)
+    if out.ndim != 2 or out.shape[1] != 5:
+        raise DetectorError(
+            f"seeds must be an (n, 5) array of (u, v, a, b, angle), got {out.shape}"
+        )
+    return out
+
+
+def checked_rho_range(rho_range: tuple[float, float]) -> tuple[float, float]:
+    """``rho_range`` as ``(lo, hi)`` with ``0 <= lo < 1 < hi``."""
+    lo, hi = (float(x) for x in rho_range)
+    if not (0.0 <= lo < 1.0 < hi):
+        raise DetectorError(f"rho_range must satisfy 0 <= lo < 1 < hi, got {rho_range}")
+    return lo, hi
+
+
+def polarity_signs(dark_inside: NDArray[np.bool_] | bool, n: int) -> NDArray[np.float64]:
+    """+1 where an edge's inside is dark, -1 where it is light, for ``n`` edges."""
+    return np.where(np.broadcast_to(np.asarray(dark_inside, dtype=bool), (n,)), 1.0, -1.0)
+
+
 def _refine(
     image: NDArray[Any],
     seeds: NDArray[np.float64],
@@ -243,18 +269,14 @@ def _refine(
 ) -> list[EdgeFits]:
     """Common core: ``seeds`` is ``(n, E, 5)``, outermost edge first; ``signs`` the sign of each
     edge's step in the model (+1 the outermost)."""
-    img = np.asarray(image)
-    if img.ndim != 2:
-        raise DetectorError(f"image must be 2-D (grey), got shape {img.shape}")
+    img = checked_image(image)
     if not (np.isfinite(noise_std) and noise_std > 0):
         raise DetectorError(f"noise_std must be a positive number, got {noise_std}")
     if iterations < 1:
         raise DetectorError(f"iterations must be at least 1, got {iterations}")
     if not band_px >= 1.0:
         raise DetectorError(f"band_px must be at least 1 pixel, got {band_px}")
-    lo, hi = (float(x) for x in rho_range)
-    if not (0.0 <= lo < 1.0 < hi):
-        raise DetectorError(f"rho_range must satisfy 0 <= lo < 1 < hi, got {rho_range}")
+    lo, hi = checked_rho_range(rho_range)
     n, n_edges = seeds.shape[0], seeds.shape[1]
     outs = [
         EdgeFits(
@@ -364,7 +386,7 @@ def _gauss_newton(
     theta = np.zeros((k, npar))
     for e in range(n_edges):
         theta[:, 5 * e : 5 * e + 2] = seeds[:, e, :2] - ref
-        theta[:, 5 * e + 2 : 5 * e + 5] = _quadratic_form(seeds[:, e, 2:5])
+        theta[:, 5 * e + 2 : 5 * e + 5] = quadratic_form(seeds[:, e, 2:5])
     theta[:, isp] = _START_SPREAD_PX
     ok = np.ones(k, dtype=bool)
     lo, hi = rho_range
@@ -442,7 +464,7 @@ def _gauss_newton(
     cov = np.empty((k, n_edges, 5, 5))
     for e in range(n_edges):
         sl = slice(5 * e, 5 * e + 5)
-        p, jac5 = _from_quadratic_form(theta[:, sl])
+        p, jac5 = from_quadratic_form(theta[:, sl])
         p[:, :2] += ref
         params[:, e] = p
         cov[:, e] = jac5 @ cov_all[:, sl, sl] @ np.swapaxes(jac5, 1, 2)
@@ -591,7 +613,7 @@ class _Tie:
     def build(cls, seeds: NDArray[np.float64], npar: int, tie_px: float, sigma: float) -> _Tie:
         k = seeds.shape[0]
         ratio = seeds[:, 1, 2] / seeds[:, 0, 2]
-        q_in = _quadratic_form(seeds[:, 1, 2:5])
+        q_in = quadratic_form(seeds[:, 1, 2:5])
         a_in = seeds[:, 1, 2]
         # Edge shift of a form entry's change: dA/A * a / 2 pixels, so sd(A) = 2 tie A / a.
         sd = np.empty((k, 5))
@@ -616,7 +638,7 @@ class _Tie:
         return np.asarray((self.jt @ (self.w * diff)[:, :, None])[:, :, 0], dtype=np.float64)
 
 
-def _quadratic_form(axes: NDArray[np.float64]) -> NDArray[np.float64]:
+def quadratic_form(axes: NDArray[np.float64]) -> NDArray[np.float64]:
     """``(A, B, C)`` of ``R diag(1/a^2, 1/b^2) R^T`` for rows ``(a, b, angle)``."""
     a, b, ang = axes.T
     c, s = np.cos(ang), np.sin(ang)
@@ -624,7 +646,7 @@ def _quadratic_form(axes: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.column_stack([c * c * ia + s * s * ib, c * s * (ia - ib), s * s * ia + c * c * ib])
 
 
-def _from_quadratic_form(
+def from_quadratic_form(
     theta: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``(u, v, a, b, angle)`` from ``(u, v, A, B, C)``, canonical (``a >= b``, angle in
@@ -734,15 +756,15 @@ def _levels(
 
 def _safe_solve(A: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     """Batched ``solve(A, b)`` for ``(k, n, n)`` and ``(k, n)``; NaN rows where singular."""
-    return _per_matrix(lambda m, v: np.linalg.solve(m, v[..., None])[..., 0], b.shape, A, b)
+    return per_matrix(lambda m, v: np.linalg.solve(m, v[..., None])[..., 0], b.shape, A, b)
 
 
 def _safe_inverse(A: NDArray[np.float64]) -> NDArray[np.float64]:
     """Batched inverse; NaN matrices where singular."""
-    return _per_matrix(np.linalg.inv, A.shape, A)
+    return per_matrix(np.linalg.inv, A.shape, A)
 
 
-def _per_matrix(
+def per_matrix(
     op: Callable[..., NDArray[Any]],
     shape: tuple[int, ...],
     *args: NDArray[np.float64],

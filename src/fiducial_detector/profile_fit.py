@@ -36,7 +36,16 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr
 
-from .edge_fit import EdgeFits, _from_quadratic_form, _per_matrix, _quadratic_form
+from .edge_fit import (
+    EdgeFits,
+    checked_image,
+    checked_rho_range,
+    checked_seeds,
+    from_quadratic_form,
+    per_matrix,
+    polarity_signs,
+    quadratic_form,
+)
 from .errors import DetectorError
 
 #: Samples per line, spread evenly over its window (at most a pixel apart: the sums are then
@@ -129,23 +138,13 @@ def refine_by_profiles(
     DetectorError
         If the image is not 2-D, the seeds are not ``(n, 5)``, or a parameter is out of range.
     """
-    img = np.asarray(image)
-    if img.ndim != 2:
-        raise DetectorError(f"image must be 2-D (grey), got shape {img.shape}")
-    seeds = np.asarray(seeds, dtype=np.float64)
-    if seeds.ndim != 2 or seeds.shape[1] != 5:
-        raise DetectorError(
-            f"seeds must be an (n, 5) array of (u, v, a, b, angle), got {seeds.shape}"
-        )
+    img = checked_image(image)
+    seeds = checked_seeds(seeds)
     if passes < 1:
         raise DetectorError(f"passes must be at least 1, got {passes}")
-    lo, hi = (float(x) for x in rho_range)
-    if not (0.0 <= lo < 1.0 < hi):
-        raise DetectorError(f"rho_range must satisfy 0 <= lo < 1 < hi, got {rho_range}")
-    n = seeds.shape[0]
-    polarity = np.where(np.broadcast_to(np.asarray(dark_inside, dtype=bool), (n,)), 1.0, -1.0)
-    src = img if img.dtype == np.float32 else img.astype(np.float32)
-    return refine_by_profiles_f32(src, seeds, polarity, (lo, hi), passes)
+    rho = checked_rho_range(rho_range)
+    polarity = polarity_signs(dark_inside, seeds.shape[0])
+    return refine_by_profiles_f32(np.asarray(img, dtype=np.float32), seeds, polarity, rho, passes)
 
 
 def refine_by_profiles_f32(
@@ -297,9 +296,9 @@ def _pass(
     delta, cov_f, rms, used = _solve(lines.jac, t, good)
     ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
     theta = np.zeros((k, 5))
-    theta[:, 2:] = _quadratic_form(cur[:, 2:5])
+    theta[:, 2:] = quadratic_form(cur[:, 2:5])
     theta += np.where(ok[:, None], np.nan_to_num(delta), 0.0)
-    new, jac5 = _from_quadratic_form(theta)
+    new, jac5 = from_quadratic_form(theta)
     new[:, :2] += cur[:, :2]
     cov = jac5 @ cov_f @ np.swapaxes(jac5, 1, 2)
     ok &= np.all(np.isfinite(new), axis=1) & (new[:, 3] > 0.5)
@@ -385,7 +384,7 @@ def _lines(
     upper = np.minimum((hi - 1.0) * support, cap[:, None])
     # d(signed distance)/d(u, v, A, B, C) at a point of the ellipse (rho = 1): the derivative of
     # q = (p - c)^T Q (p - c) over |grad q|, with grad q = 2 Q (p - c).
-    q = _quadratic_form(ellipses[:, 2:5])
+    q = quadratic_form(ellipses[:, 2:5])
     gx = q[:, 0:1] * du + q[:, 1:2] * dv
     gy = q[:, 1:2] * du + q[:, 2:3] * dv
     inv = 1.0 / np.sqrt(gx * gx + gy * gy)
@@ -494,7 +493,7 @@ def _solve(
         solvable = used >= _MIN_LINES
         delta = np.full((k, 5), np.nan)
         if np.any(solvable):
-            delta[solvable] = _per_matrix(
+            delta[solvable] = per_matrix(
                 lambda a, v: np.linalg.solve(a, v[..., None])[..., 0],
                 (int(solvable.sum()), 5),
                 normal[solvable],
@@ -507,6 +506,6 @@ def _solve(
             use = good & (np.abs(resid) <= _OUTLIER_SDS * sd[:, None])
     cov = np.full((k, 5, 5), np.nan)
     if np.any(solvable):
-        inv = _per_matrix(np.linalg.inv, (int(solvable.sum()), 5, 5), normal[solvable])
+        inv = per_matrix(np.linalg.inv, (int(solvable.sum()), 5, 5), normal[solvable])
         cov[solvable] = inv * ((_CORRELATION * sd[solvable]) ** 2)[:, None, None]
     return delta, cov, sd, used.astype(np.intp)
