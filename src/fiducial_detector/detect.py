@@ -551,9 +551,10 @@ def fit_design_circles(
     # Ellipses whose tips bend within the blur (curvature a / b^2) break the profiles'
     # first-order curvature correction there.
     weak |= seeds[:, 2] / np.maximum(seeds[:, 3], 1e-9) ** 2 > PROFILE_MAX_TIP_CURVATURE
+    near = first.ok & _plausible_rows(first.params, seeds)
     out: list[tuple[Ellipse, ...]] = [()] * len(seeds)
     strong = np.flatnonzero(~weak)
-    groups = _fit_profiles(grey, src, seeds[strong], design, noise_std, first, strong)
+    groups = _fit_profiles(grey, src, seeds[strong], design, noise_std, first, strong, near)
     for j, g in zip(strong, groups, strict=True):
         out[j] = g
         # Without a concentric circle the pose is ambiguous: the model fit, which fits the
@@ -562,8 +563,7 @@ def fit_design_circles(
     slow = np.flatnonzero(weak)
     # The profile fit, where it converged near its seed, seeds the model fit better than the
     # boundary's moment ellipse (fewer Gauss-Newton steps).
-    near = first.ok[slow] & _plausible_rows(first.params[slow], seeds[slow])
-    start = np.where(near[:, None], first.params[slow], seeds[slow])
+    start = np.where(near[slow, None], first.params[slow], seeds[slow])
     for j, g in zip(slow, _fit_ml(grey, start, design, noise_std), strict=True):
         out[j] = g
     return out
@@ -593,14 +593,15 @@ def _fit_profiles(
     noise: float,
     first: EdgeFits,
     rows: NDArray[np.intp],
+    near: NDArray[np.bool_],
 ) -> list[tuple[Ellipse, ...]]:
-    """:func:`fit_design_circles` by edge profiles, given the pose circles' fits ``first``
-    (rows ``rows`` of it belong to ``seeds``)."""
+    """:func:`fit_design_circles` by edge profiles, given the pose circles' fits ``first`` and
+    which of them stayed near their seeds, ``near`` (rows ``rows`` of both belong to
+    ``seeds``)."""
     if len(seeds) == 0:
         return []
     r0 = design.pose_circle.radius
-    near = first.ok[rows] & _plausible_rows(first.params[rows], seeds)
-    fitted = _ellipses(first, r0, rows, near)
+    fitted = _ellipses(first, r0, rows, near[rows])
     pose = _with_fallback(grey, seeds, design, noise, fitted)
     groups: list[list[Ellipse]] = [[e] if e is not None else [] for e in pose]
     found = [j for j, e in enumerate(pose) if e is not None]
