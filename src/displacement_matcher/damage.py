@@ -26,6 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .errors import MatcherError
+from .rigid import across_line_of_sight
 from .types import DamageSummary, DamageThresholds, UnitMotion
 
 DEFAULT_MOVED_MM = 2.0
@@ -102,9 +103,8 @@ def confirmed_distance_mm(unit: UnitMotion, t: DamageThresholds) -> float:
     rng = float(np.linalg.norm(ref))
     if not (math.isfinite(rng) and rng > 0):
         return dist
-    ray = ref / rng
     d = np.asarray(unit.translation_mm, dtype=np.float64)
-    lateral = float(np.linalg.norm(d - (d @ ray) * ray))
+    lateral = float(np.linalg.norm(across_line_of_sight(d, ref)))
     return lateral if lateral < t.lateral_confirm_mm else dist
 
 

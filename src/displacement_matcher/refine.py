@@ -21,6 +21,7 @@ from pose_estimator.types import FiducialPose
 
 from .errors import MatcherError
 from .match import match
+from .rigid import across_line_of_sight
 from .types import MatchResult, UnitMotion
 from .units import (
     DEFAULT_OVERTURN_DEG,
@@ -203,10 +204,7 @@ def _merge_fragments(
         if len(set(codes)) != len(codes):
             continue
         pos = np.array([base[i].position_mm for i in ix], dtype=np.float64)
-        ray = pos.mean(axis=0)
-        ray /= max(float(np.linalg.norm(ray)), 1e-12)
-        diff = pos[:, None] - pos[None]
-        lateral = diff - np.einsum("ijk,k->ij", diff, ray)[..., None] * ray
+        lateral = across_line_of_sight(pos[:, None] - pos[None], pos.mean(axis=0))
         if np.max(np.linalg.norm(lateral, axis=2)) > span_mm:
             continue
         for n in parts[1:]:

@@ -162,3 +162,14 @@ def rigid_fit(
     R = Vt.T @ np.diag([1.0, 1.0, sign]) @ U.T
     t = np.average(dst - src @ R.T, axis=0, weights=w)
     return np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+
+
+def across_line_of_sight(
+    vectors: NDArray[np.float64], through: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The components of ``vectors`` (``(..., 3)``) across the line of sight from the camera
+    (the origin) through the point ``through`` (``(3,)``): what one image measures precisely."""
+    ray = np.asarray(through, dtype=np.float64)
+    ray = ray / max(float(np.linalg.norm(ray)), 1e-12)
+    v = np.asarray(vectors, dtype=np.float64)
+    return np.asarray(v - (v @ ray)[..., None] * ray, dtype=np.float64)
