@@ -170,12 +170,15 @@ def main(argv: list[str] | None = None) -> int:
             if delay > 0:
                 time.sleep(delay)
             next_t += period
+            # The messages are built first and stamped just before publication: the latency
+            # measured is the graph's, from publication on, not this process's building of a
+            # 6 MB message (a camera driver's cost).
+            info = CameraInfo(**info_fields)
+            msg = Image(**image_codec.image_to_msg_fields(value))
             now = node.get_clock().now()
             stamp = now.to_msg()
-            info = CameraInfo(**info_fields)
             info.header.stamp = stamp
             pub_info.publish(info)
-            msg = Image(**image_codec.image_to_msg_fields(value))
             msg.header.stamp = stamp
             msg.header.frame_id = "armourcam_camera"
             with lock:

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Pose, PoseArray
+from geometry_msgs.msg import Point, Pose, PoseArray, Quaternion
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, PointCloud2, PointField
@@ -104,29 +104,31 @@ class PoseNodeConfig:
     diagnostics_period_s: float
 
 
-def _normal_quaternion(n: np.ndarray) -> tuple[float, float, float, float]:
-    """Quaternion ``(x, y, z, w)`` of the shortest rotation taking +z to the unit vector ``n``."""
-    z = np.array([0.0, 0.0, 1.0])
-    n = n / (np.linalg.norm(n) or 1.0)
-    w = 1.0 + float(z @ n)
-    if w < 1e-9:  # n = -z: half turn about x
-        return (1.0, 0.0, 0.0, 0.0)
-    axis = np.cross(z, n)
-    q = np.array([axis[0], axis[1], axis[2], w])
-    q /= np.linalg.norm(q)
-    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+def normal_quaternions(normals: np.ndarray) -> np.ndarray:
+    """Quaternions ``(x, y, z, w)``, one row per unit vector of ``(n, 3)`` ``normals``: the
+    shortest rotation taking +z to it (a half turn about x for -z)."""
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    n = n / np.where(norm > 0, norm, 1.0)
+    # q = (z x n, 1 + z.n), normalised; z x n = (-n_y, n_x, 0).
+    q = np.column_stack([-n[:, 1], n[:, 0], np.zeros(len(n)), 1.0 + n[:, 2]])
+    flip = q[:, 3] < 1e-9
+    q[flip] = (1.0, 0.0, 0.0, 0.0)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def pose_array(header: Any, poses: list[FiducialPose]) -> PoseArray:
-    """PoseArray (metres) of fiducial poses (mm)."""
+    """PoseArray (metres) of fiducial poses (mm); orientation: +z turned onto the normal."""
     out = PoseArray(header=header)
-    for p in poses:
-        m = Pose()
-        x, y, z = (float(c) / 1000.0 for c in p.position_mm)
-        m.position.x, m.position.y, m.position.z = x, y, z
-        qx, qy, qz, qw = _normal_quaternion(np.asarray(p.normal, dtype=np.float64))
-        m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w = qx, qy, qz, qw
-        out.poses.append(m)
+    if not poses:
+        return out
+    # Arrays first: per-pose numpy calls would cost more than the messages themselves.
+    xyz = (np.array([p.position_mm for p in poses], dtype=np.float64) / 1000.0).tolist()
+    quat = normal_quaternions(np.array([p.normal for p in poses])).tolist()
+    out.poses = [
+        Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+        for (x, y, z), (qx, qy, qz, qw) in zip(xyz, quat, strict=True)
+    ]
     return out
 
 
