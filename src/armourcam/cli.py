@@ -15,6 +15,7 @@ import sys
 from collections.abc import Sequence
 
 from . import __version__, commands
+from .blas import one_blas_thread
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit status."""
+    one_blas_thread()  # before any command imports numpy
     args = build_parser().parse_args(argv)
     try:
         status = args.func(args)

@@ -38,6 +38,8 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, Si
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from .blas import one_blas_thread
+
 QOS_NAMES = ("reliable", "sensor_data")
 NODE_NAMES = ("fiducial_detector", "pose_estimator", "displacement_matcher")
 
@@ -336,11 +338,13 @@ def launch_processes(
 ) -> dict[str, subprocess.Popen[bytes]]:
     """Start each node as its own process, each in its own process group.
 
+    The nodes get one BLAS thread each (:mod:`armourcam.blas`) unless ``env`` says otherwise.
     Output goes to ``log_dir/<node>.log`` when given (else inherited). ``niceness`` (default
     :data:`NICENESS`) lowers the CPU priority of the named nodes by that much. Stop them with
     :func:`stop_processes`.
     """
     niceness = NICENESS if niceness is None else niceness
+    child_env = one_blas_thread(dict(env if env is not None else os.environ))
     procs: dict[str, subprocess.Popen[bytes]] = {}
     try:
         for name in nodes:
@@ -350,7 +354,7 @@ def launch_processes(
                 out = open(log_dir / f"{name}.log", "ab")  # noqa: SIM115 - owned by the child
             procs[name] = subprocess.Popen(
                 node_command(name, params_file, ros_args),
-                env=env if env is not None else os.environ.copy(),
+                env=child_env,
                 stdout=out,
                 stderr=subprocess.STDOUT if out is not None else None,
                 start_new_session=True,

@@ -15,6 +15,7 @@ and the worker is started again for the next frame (:attr:`ParallelDetector.fail
 from __future__ import annotations
 
 import contextlib
+import os
 import socket
 import subprocess
 import sys
@@ -44,6 +45,9 @@ from .types import FiducialDetection
 MIN_SHARE = 6
 #: Where POSIX shared memory blocks appear as files (Linux).
 _SHM_DIR = Path("/dev/shm")
+#: BLAS thread-count variables, defaulted to 1 for the workers (as ``armourcam.blas`` does for
+#: the nodes).
+_BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 #: Seconds a worker may take for its share before it is given up and the share done here.
 WORKER_TIMEOUT_S = 30.0
 
@@ -151,10 +155,14 @@ class ParallelDetector:
         # A plain subprocess, not multiprocessing's spawn: that would re-run the caller's
         # __main__ module in the worker. The pipe is one end of a socket pair.
         here, there = socket.socketpair()
+        env = dict(os.environ)
+        for name in _BLAS_THREAD_VARIABLES:  # tiny batched solves: extra BLAS threads only spin
+            env.setdefault(name, "1")
         proc = subprocess.Popen(
             [sys.executable, "-m", "fiducial_detector.parallel", str(there.fileno())],
             pass_fds=(there.fileno(),),
             stdin=subprocess.DEVNULL,
+            env=env,
         )
         there.close()
         conn = Connection(here.detach())

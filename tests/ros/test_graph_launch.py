@@ -1,4 +1,5 @@
-"""The graph launcher: one process per node, the matcher at a lower CPU priority, all stopped."""
+"""The graph launcher: one process per node, one BLAS thread each, the matcher at a lower CPU
+priority, all stopped."""
 
 from __future__ import annotations
 
@@ -10,11 +11,22 @@ from rosutil import ros_env
 from armourcam import graph
 
 
+def _environ(pid: int) -> dict[str, str]:
+    raw = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    return dict(item.decode().split("=", 1) for item in raw if b"=" in item)
+
+
 def test_launched_matcher_runs_niced_and_every_process_stops(tmp_path: Path) -> None:
+    env = ros_env()
+    env.pop("OPENBLAS_NUM_THREADS", None)
+    env["MKL_NUM_THREADS"] = "3"  # an explicit setting wins
     procs = graph.launch_processes(
-        nodes=("pose_estimator", "displacement_matcher"), env=ros_env(), log_dir=tmp_path
+        nodes=("pose_estimator", "displacement_matcher"), env=env, log_dir=tmp_path
     )
     try:
+        for p in procs.values():
+            child = _environ(p.pid)
+            assert child["OPENBLAS_NUM_THREADS"] == "1" and child["MKL_NUM_THREADS"] == "3"
         base = os.getpriority(os.PRIO_PROCESS, 0)
         want = min(19, base + graph.NICENESS["displacement_matcher"])
         assert os.getpriority(os.PRIO_PROCESS, procs["displacement_matcher"].pid) == want
