@@ -36,6 +36,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from .code_reader import (
     DEFAULT_MIN_CONTRAST,
@@ -961,14 +962,22 @@ def _deduplicate(found: list[FiducialDetection]) -> list[FiducialDetection]:
         range(len(found)),
         key=lambda i: (found[i].design != "ring", found[i].hamming, -outer[i]),
     )
-    dist = np.hypot(*(centre[:, None, :] - centre[None, :, :]).transpose(2, 0, 1))
+    # Fiducials do not overlap: another centre within this one's outer radius, or whose own
+    # outer radius reaches this centre, is a second reading of the same object. Only pairs
+    # closer than the largest radius can be (a k-d tree finds them).
+    pairs = cKDTree(centre).query_pairs(float(outer.max()), output_type="ndarray")
+    if len(pairs):
+        i, j = pairs[:, 0], pairs[:, 1]
+        dist = np.hypot(*(centre[i] - centre[j]).T)
+        pairs = pairs[dist < np.maximum(outer[i], outer[j])]
+    if len(pairs) == 0:
+        return found
+    same: dict[int, list[int]] = {}
+    for a, b in pairs.tolist():
+        same.setdefault(a, []).append(b)
+        same.setdefault(b, []).append(a)
     dropped = np.zeros(len(found), dtype=bool)
-    for i in rank:
-        if dropped[i]:
-            continue
-        # Fiducials do not overlap: any other centre within this one's outer radius, or whose
-        # own outer radius reaches this centre, is a second reading of the same object.
-        same = (dist[i] < outer[i]) | (dist[i] < outer)
-        same[i] = False
-        dropped |= same
+    for k in rank:
+        if not dropped[k]:
+            dropped[same.get(k, [])] = True
     return [d for d, gone in zip(found, dropped.tolist(), strict=True) if not gone]
