@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -271,6 +272,9 @@ def serve(conn: Connection) -> None:
     import cv2
 
     cv2.setNumThreads(1)  # the parallelism is the processes'
+    # The parent decides when this worker stops (it closes the pipe); a Ctrl-C or a launcher's
+    # SIGINT to the process group is the parent's to handle.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     image: tuple[str, NDArray[np.uint8]] | None = None
     while True:
         try:
