@@ -268,35 +268,92 @@ def group_fiducials(
                 u = (tp[cb] - tp[ca]) / max(float(np.linalg.norm(tp[cb] - tp[ca])), 1e-9)
                 tinv[(ca, cb)] = (float(tn[ca] @ tn[cb]), float(tn[ca] @ u), float(tn[cb] @ u))
 
+    if tinv:
+        # Pairs whose depths may be far off (see depth_free) are found by direction from the
+        # camera: a lateral offset L at range r is an angle of about L / r.
+        rng = np.linalg.norm(pos, axis=1)
+        if np.all(rng > 0):
+            chord = span_mm / float(rng.min())
+            lateral = cKDTree(pos / rng[:, None]).query_pairs(chord, output_type="ndarray")
+            if len(lateral):
+                both = np.vstack([pairs.reshape(-1, 2), lateral])
+                pairs = np.unique(np.sort(both, axis=1), axis=0)
+
+    def depth_free(i: int, j: int, dt: float) -> list[NDArray[np.float64]]:
+        """Directions from ``i`` to ``j`` with their depths re-set to the template distance.
+
+        A monocular pose's offset across its line of sight is precise, its depth is not: end to
+        end a few percent of poses are 5-90 mm off in depth, far beyond their claimed sigma,
+        which fails a 3-D distance check or tilts the direction between two fiducials enough
+        to fail the normal invariants, splitting their unit. When the offset across the line of
+        sight (``L``, through the pair's midpoint) alone fits the template distance ``dt``, the
+        depths can be moved along the line of sight to make the distance exactly ``dt``: the
+        depth offset is then ``+-sqrt(dt^2 - L^2)``, the measured sign first. Empty when ``L``
+        does not fit.
+        """
+        v = pos[j] - pos[i]
+        ray = pos[i] + pos[j]
+        ray = ray / max(float(np.linalg.norm(ray)), 1e-12)
+        along = float(v @ ray)
+        lat = v - along * ray
+        length = float(np.linalg.norm(lat))
+        if length < 1e-9:
+            return []
+        u_lat = lat / length
+        sd = float(np.sqrt(max(u_lat @ (cov[i] + cov[j]) @ u_lat, 0.0)))
+        if length > dt + tol_mm + 3.0 * sd:
+            return []
+        depth = float(np.sqrt(max(dt * dt - length * length, 0.0)))
+        out = []
+        for sign in (1.0, -1.0) if along >= 0 else (-1.0, 1.0):
+            w = lat + sign * depth * ray
+            out.append(np.asarray(w / max(float(np.linalg.norm(w)), 1e-12), dtype=np.float64))
+        return out
+
+    def normal_error(i: int, j: int, key: tuple[int, int], w: NDArray[np.float64]) -> float:
+        """Worst disagreement of the pair's rigid invariants with the template's.
+
+        Rigid invariants of two oriented points: ``n_i . n_j`` and each normal against the
+        direction ``w`` from i to j. A pose on the wrong branch must not split its unit, so
+        mirrored normals may stand in; but four combinations make chance agreement likelier, so
+        each mirror halves the tolerance.
+        """
+        err = np.inf
+        for (fi, ni), (fj, nj) in itertools.product(
+            enumerate(b[i] for b in branches), enumerate(b[j] for b in branches)
+        ):
+            seen = (float(ni @ nj), float(ni @ w), float(nj @ w))
+            e = max(abs(a - b) for a, b in zip(seen, tinv[key], strict=True))
+            err = min(err, e * 2.0 ** (fi + fj))
+        return float(err)
+
     def mismatch(i: int, j: int) -> float:
-        """Template distance error over its tolerance (<= 1 compatible); inf if incompatible."""
+        """Template distance error over its tolerance (<= 1 compatible); inf if incompatible.
+
+        With template normals, the larger of that and the normal invariants' error over
+        ``normal_tol``. A pair that fails with its measured depths is tried with its depths
+        re-set (:func:`depth_free`): then it scores at least 1 (joined after every pair that
+        fits in 3-D) and its normals must bear all the weight (the reversed depth offset, a
+        second guess, at half the tolerance).
+        """
         if code[i] == code[j]:
             return np.inf
-        v = pos[i] - pos[j]
+        v = pos[j] - pos[i]
         d = float(np.linalg.norm(v))
-        if d > span_mm:
-            return np.inf
         key = (int(code[i]), int(code[j]))
         if key not in tdist:
-            return 0.0
-        u = v / max(d, 1e-9)
-        sd = float(np.sqrt(max(u @ (cov[i] + cov[j]) @ u, 0.0)))
-        score = abs(d - tdist[key]) / (tol_mm + 3.0 * sd)
-        if key in tinv and has_n[i] and has_n[j]:
-            # Rigid invariants of two oriented points: n_i.n_j and each normal against the
-            # direction between them (from i to j), to within ~15 deg. A pose on the wrong
-            # branch must not split its unit, so mirrored normals may stand in; but four
-            # combinations make chance agreement likelier, so each mirror halves the tolerance.
-            w = -u  # pos[j] - pos[i], normalised
-            err = np.inf
-            for (fi, ni), (fj, nj) in itertools.product(
-                enumerate(b[i] for b in branches), enumerate(b[j] for b in branches)
-            ):
-                seen = (float(ni @ nj), float(ni @ w), float(nj @ w))
-                e = max(abs(a - b) for a, b in zip(seen, tinv[key], strict=True))
-                err = min(err, e * 2.0 ** (fi + fj))
-            score = max(score, err / normal_tol)
-        return score
+            return 0.0 if d <= span_mm else np.inf
+        w = v / max(d, 1e-9)
+        sd = float(np.sqrt(max(w @ (cov[i] + cov[j]) @ w, 0.0)))
+        score = abs(d - tdist[key]) / (tol_mm + 3.0 * sd) if d <= span_mm else np.inf
+        if not (key in tinv and has_n[i] and has_n[j]):
+            return score
+        best = max(score, normal_error(i, j, key, w) / normal_tol)
+        if best <= 1.0:
+            return best
+        for k, w_free in enumerate(depth_free(i, j, tdist[key])):
+            best = min(best, max(1.0, normal_error(i, j, key, w_free) * 2.0**k / normal_tol))
+        return best
 
     def compatible(i: int, j: int) -> bool:
         return mismatch(i, j) <= 1.0
@@ -714,6 +771,12 @@ def _motion_of_unit(
         )
     elif turned_over:
         turned_over = len(ix) >= 2
+    if len(use) == 1 and not same and not turned_over:
+        # One cross-code match and nothing else: the only evidence of where the unit went is a
+        # pairing of two different codes, which end to end is mostly a stranger picked up where
+        # the unit's own fiducial is hidden (the paper's red vectors are the unreliable ones).
+        # Its motion is not measured: the unit is lost, not displaced.
+        use = []
     if not ix:
         status = "unseen"
         return UnitMotion(

@@ -14,9 +14,16 @@ import pytest
 from matcher_synth import realistic_cov
 
 from armourcam.field import dolos_geometry
+from displacement_matcher import match
 from displacement_matcher.damage import assess, thresholds
 from displacement_matcher.refine import match_units
-from displacement_matcher.units import UnitMap, UnitSpec, group_fiducials, mirror_normals
+from displacement_matcher.units import (
+    UnitMap,
+    UnitSpec,
+    group_fiducials,
+    mirror_normals,
+    unit_motions,
+)
 from pose_estimator.conic_pose import circle_params, circle_pose, conic_from_params
 from pose_estimator.types import FiducialPose
 
@@ -175,3 +182,54 @@ def test_lone_fiducial_counts_only_confirmed_motion(
     assert (summary.displaced_units == 1) is displaced
     if not displaced:
         assert motions[0].status == "still"
+
+
+def test_depth_outliers_do_not_split_units() -> None:
+    """Every unit with one fiducial 8-80 mm off in depth stays whole.
+
+    The 3-D distance and the direction between two fiducials are both wrong then; only the
+    offsets across the line of sight and the normals are right.
+    """
+    rng = np.random.default_rng(99)
+    poses, owner = [], []
+    for u, c in enumerate(_row(6)):
+        unit = _unit(c, _rot([0.3, 1.0, 0.2], rng.uniform(-15, 15)) @ R0)
+        k = int(rng.integers(len(unit)))
+        for m, p in enumerate(unit):
+            if m == k:
+                p = _shift_depth(p, float(rng.choice([-1.0, 1.0]) * rng.uniform(8.0, 80.0)))
+            poses.append(p)
+            owner.append(u)
+    groups = group_fiducials(poses, span_mm=_template().span_mm, template=_template().template)
+    owners = np.array(owner)
+    assert sorted(sorted(set(owners[g].tolist())) for g in groups) == [[u] for u in range(6)]
+
+
+def test_lone_cross_code_match_does_not_displace_a_unit() -> None:
+    """A still unit whose one fiducial is hidden now, beside a stranger of another code.
+
+    The global matching pairs them across codes (cheaper than leaving both unmatched), which
+    would put the unit 1.1 Dn away: one cross-code pair is no evidence of where a unit went,
+    so it is lost, not displaced, while its still neighbours stay still.
+    """
+    units = [_unit(c, R0) for c in _row(3)]
+    lone = units[1][0]  # the middle unit shows only this fiducial in the baseline
+    base = units[0] + [lone] + units[2]
+    ray = lone.position_mm / np.linalg.norm(lone.position_mm)
+    across = np.cross(ray, [0.0, 0.0, 1.0]) + np.cross(ray, [1.0, 0.0, 0.0])
+    across /= np.linalg.norm(across)
+    other = next(c for c in GEO.codes if c != lone.code)
+    where = lone.position_mm + 1.1 * GEO.dn_mm * across
+    stranger = FiducialPose(other, where, lone.normal, realistic_cov(where, 0.1, 1.0))
+    cur = units[0] + units[2] + [stranger]
+    first = match(base, cur, gate_mm=50.0)
+    assert [d.label for d in first.displacements].count("cross_code") == 1
+    for found in (
+        unit_motions(first, unit_map=_template())[0],  # the global matching alone
+        match_units(base, cur, unit_map=_template(), gate_mm=50.0).units,
+    ):
+        motions, summary = assess(found, thresholds(GEO.dn_mm))
+        assert summary.displaced_units == 0 and summary.overturned_units == 0
+        (alone,) = [u for u in motions if u.baseline_indices == (len(units[0]),)]
+        assert alone.status == "lost"
+        assert sum(u.status == "still" for u in motions) == 2
