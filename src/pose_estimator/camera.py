@@ -129,45 +129,74 @@ class CameraModel:
         the same.
         """
         px = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        xd = (px - self.K[:2, 2]) / np.diag(self.K)[:2]
+        start = None
+        if guess is not None:
+            g = np.asarray(guess, dtype=np.float64).reshape(-1, 2)
+            start = (g[:, 0], g[:, 1])
+        x, y = self.undistort_components(px[:, 0], px[:, 1], start, pixels=False)
+        return np.column_stack([x, y])
+
+    def undistort_components(
+        self,
+        u: NDArray[np.float64],
+        v: NDArray[np.float64],
+        guess: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+        *,
+        pixels: bool = True,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """:meth:`undistort_pixels` (or, with ``pixels=False``, :meth:`undistort_normalized`)
+        on coordinates given as two arrays of any (equal) shape, ``u`` and ``v``.
+
+        Components in separate contiguous arrays let every Newton operation run over one long
+        array, with no ``(N, 2)`` interleaving, for callers that keep points that way (the
+        boundary samples of all fitted ellipses at once). ``guess`` is a pair of arrays of the
+        same shape, in the unit of the result.
+        """
+        f0, f1 = float(self.K[0, 0]), float(self.K[1, 1])
+        c0, c1 = float(self.K[0, 2]), float(self.K[1, 2])
+        x0 = (np.asarray(u, dtype=np.float64) - c0) / f0
+        y0 = (np.asarray(v, dtype=np.float64) - c1) / f1
         if not self.has_distortion:
-            return xd
-        D = np.zeros(8)
-        D[: len(self.D)] = self.D
-        k1, k2, p1, p2, k3, k4, k5, k6 = (float(d) for d in D)
-        rational = bool(k4 or k5 or k6)
-        # Contiguous components: every operation below runs over one long array.
-        x0, y0 = np.ascontiguousarray(xd[:, 0]), np.ascontiguousarray(xd[:, 1])
-        start = xd if guess is None else np.asarray(guess, dtype=np.float64).reshape(-1, 2)
-        x, y = start[:, 0].copy(), start[:, 1].copy()
-        for _ in range(30):
-            xx, yy, xy = x * x, y * y, x * y
-            r2 = xx + yy
-            rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-            if rational:
-                b = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-                db = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
-                drad = (drad * b - rad * db) / (b * b)
-                rad = rad / b
-            fx = x * rad + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx) - x0
-            fy = y * rad + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy - y0
-            drad2 = 2.0 * drad
-            j11 = rad + drad2 * xx + 2.0 * p1 * y + 6.0 * p2 * x
-            j12 = drad2 * xy + 2.0 * p1 * x + 2.0 * p2 * y
-            j22 = rad + drad2 * yy + 6.0 * p1 * y + 2.0 * p2 * x
-            det = j11 * j22 - j12 * j12
-            x -= (j22 * fx - j12 * fy) / det
-            y -= (j11 * fy - j12 * fx) / det
-            resid = np.abs(fx) + np.abs(fy)
-            if resid.max() < 1e-14:
-                break
-        xy_out = np.column_stack([x, y])
+            return (x0 * f0 + c0, y0 * f1 + c1) if pixels else (x0, y0)
+        if guess is None:
+            x, y = x0.copy(), y0.copy()
+        elif pixels:
+            x = (np.asarray(guess[0], dtype=np.float64) - c0) / f0
+            y = (np.asarray(guess[1], dtype=np.float64) - c1) / f1
+        else:
+            x = np.array(guess[0], dtype=np.float64)
+            y = np.array(guess[1], dtype=np.float64)
+        x, y, resid = _newton_undistort(x0, y0, x, y, self.D)
         # The residual before the last step bounds the error after it (quadratic convergence).
         bad = ~(np.isfinite(x) & np.isfinite(y)) | ~(resid < 1e-9)
         if np.any(bad):
-            xy_out[bad] = self._undistort_opencv(px[bad])
-        return xy_out
+            px = np.column_stack([np.asarray(u)[bad], np.asarray(v)[bad]])
+            fallback = self._undistort_opencv(px)
+            x[bad], y[bad] = fallback[:, 0], fallback[:, 1]
+        return (x * f0 + c0, y * f1 + c1) if pixels else (x, y)
+
+    def undistortion_jacobian(
+        self, u: NDArray[np.float64], v: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Ideal pixels ``u'``, ``v'`` of distorted ones ``u``, ``v`` (arrays of any shape, as
+        :meth:`undistort_components`) and the Jacobian ``d(u', v') / d(u, v)`` there.
+
+        The Jacobian is returned as ``(4, ...)``: entries ``(a00, a01, a10, a11)``, from the
+        lens model's analytic Jacobian inverted at the ideal point (exact, no finite
+        differences).
+        """
+        x, y = self.undistort_components(u, v, pixels=False)
+        f0, f1 = float(self.K[0, 0]), float(self.K[1, 1])
+        c0, c1 = float(self.K[0, 2]), float(self.K[1, 2])
+        coeffs = _coefficients(self.D)
+        xx, yy, xy = x * x, y * y, x * y
+        rad, drad = _radial(xx + yy, coeffs)
+        j11, j12, j22 = _jacobian(x, y, xx, yy, xy, rad, drad, coeffs)
+        inv_det = 1.0 / (j11 * j22 - j12 * j12)
+        # Normalised -> pixels on both sides: A_px = diag(f) J^-1 diag(f)^-1.
+        A = np.stack([j22 * inv_det, -j12 * inv_det * (f0 / f1), -j12 * inv_det * (f1 / f0)])
+        A = np.concatenate([A, (j11 * inv_det)[None]])
+        return x * f0 + c0, y * f1 + c1, A
 
     def _undistort_opencv(self, px: NDArray[np.float64]) -> NDArray[np.float64]:
         """OpenCV's iterative inverse (fallback), normalised coordinates."""
@@ -189,9 +218,13 @@ class CameraModel:
 
         ``guess`` (``(N, 2)`` ideal pixels near the answer) only saves Newton iterations.
         """
-        f, c = np.diag(self.K)[:2], self.K[:2, 2]
-        start = None if guess is None else (np.asarray(guess, dtype=np.float64) - c) / f
-        return self.undistort_normalized(uv, start) * f + c
+        px = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        start = None
+        if guess is not None:
+            g = np.asarray(guess, dtype=np.float64).reshape(-1, 2)
+            start = (g[:, 0], g[:, 1])
+        u, v = self.undistort_components(px[:, 0], px[:, 1], start)
+        return np.column_stack([u, v])
 
     @classmethod
     def from_camera_info(
@@ -270,3 +303,85 @@ class CameraModel:
                 "data": np.hstack([self.K, np.zeros((3, 1))]).ravel().tolist(),
             },
         }
+
+
+def _newton_undistort(
+    x0: NDArray[np.float64],
+    y0: NDArray[np.float64],
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    D: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Ideal normalised points ``(x, y)`` whose distortion is ``(x0, y0)``, by Newton from the
+    start ``(x, y)`` (updated in place), and the residual before the last step.
+
+    The lens model (OpenCV's, ``D`` as in :class:`CameraModel`) and its analytic Jacobian, over
+    whole arrays; stops when every residual is below 1e-14, checked before the Jacobian is
+    formed, so a converged pass costs only the residual.
+    """
+    coeffs = _coefficients(D)
+    p1, p2 = coeffs[2], coeffs[3]
+    tangential = bool(p1 or p2)
+    resid = np.full(np.shape(x), np.inf)
+    for _ in range(30):
+        xx, yy, xy = x * x, y * y, x * y
+        rad, drad = _radial(xx + yy, coeffs)
+        fx = x * rad - x0
+        fy = y * rad - y0
+        if tangential:
+            r2 = xx + yy
+            fx += 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
+            fy += p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
+        resid = np.abs(fx) + np.abs(fy)
+        if resid.max() < 1e-14:
+            break
+        j11, j12, j22 = _jacobian(x, y, xx, yy, xy, rad, drad, coeffs)
+        inv_det = 1.0 / (j11 * j22 - j12 * j12)
+        x -= (j22 * fx - j12 * fy) * inv_det
+        y -= (j11 * fy - j12 * fx) * inv_det
+    return x, y, resid
+
+
+def _coefficients(D: NDArray[np.float64]) -> tuple[float, ...]:
+    """``(k1, k2, p1, p2, k3, k4, k5, k6)`` of either model as floats (zeros where absent)."""
+    coeffs = np.zeros(8)
+    coeffs[: len(D)] = D
+    return tuple(float(d) for d in coeffs)
+
+
+def _radial(
+    r2: NDArray[np.float64], coeffs: tuple[float, ...]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Radial factor of the lens model at squared radii ``r2`` and its derivative in ``r2``."""
+    k1, k2, _, _, k3, k4, k5, k6 = coeffs
+    rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    if k4 or k5 or k6:
+        b = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        db = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+        drad = (drad * b - rad * db) / (b * b)
+        rad = rad / b
+    return rad, drad
+
+
+def _jacobian(
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    xx: NDArray[np.float64],
+    yy: NDArray[np.float64],
+    xy: NDArray[np.float64],
+    rad: NDArray[np.float64],
+    drad: NDArray[np.float64],
+    coeffs: tuple[float, ...],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Entries ``(j11, j12, j22)`` of the (symmetric) Jacobian of the lens model."""
+    p1, p2 = coeffs[2], coeffs[3]
+    drad2 = 2.0 * drad
+    j11 = rad + drad2 * xx
+    j12 = drad2 * xy
+    j22 = rad + drad2 * yy
+    if p1 or p2:
+        j11 += 2.0 * p1 * y + 6.0 * p2 * x
+        j12 += 2.0 * p1 * x + 2.0 * p2 * y
+        j22 += 6.0 * p1 * y + 2.0 * p2 * x
+    return j11, j12, j22

@@ -444,6 +444,30 @@ def fit_conics(points: ArrayLike) -> F64:
 
     Notes
     -----
+    See :func:`fit_conic_entries_t`, which this wraps for points given as ``(u, v)`` pairs.
+    """
+    P = np.asarray(points, dtype=np.float64)
+    U = np.ascontiguousarray(np.moveaxis(P[..., 0], -1, 0))
+    V = np.ascontiguousarray(np.moveaxis(P[..., 1], -1, 0))
+    q11, q12, q22, q13, q23, q33 = fit_conic_entries_t(U, V)
+    out = np.empty((*P.shape[:-2], 3, 3))
+    out[..., 0, 0] = q11
+    out[..., 0, 1] = out[..., 1, 0] = q12
+    out[..., 1, 1] = q22
+    out[..., 0, 2] = out[..., 2, 0] = q13
+    out[..., 1, 2] = out[..., 2, 1] = q23
+    out[..., 2, 2] = q33
+    return out
+
+
+def fit_conic_entries_t(u: F64, v: F64) -> tuple[F64, F64, F64, F64, F64, F64]:
+    """:func:`fit_conics` with the points first: coordinates ``u``, ``v`` of shape ``(M, ...)``.
+
+    Returns the conics' entries ``(c11, c12, c22, c13, c23, c33)``, each of shape ``(...)``
+    (the order :func:`params_from_entries_t` takes).
+
+    Notes
+    -----
     The conic ``c`` minimising ``|A c|`` (``|c| = 1``) over the design matrix ``A`` with rows
     ``(x^2, xy, y^2, x, y, 1)`` is the eigenvector of the smallest eigenvalue of ``A^T A``. That
     6x6 matrix is assembled from the 15 moments ``sum x^a y^b`` (``a + b <= 4``) and the
@@ -451,26 +475,71 @@ def fit_conics(points: ArrayLike) -> F64:
     solution as a batched SVD of ``A`` at a fraction of its cost. Normalisation keeps ``A^T A``
     well conditioned apart from its (near-)null direction, which is the one sought.
     """
-    P = np.asarray(points, dtype=np.float64)
-    mean = P.mean(axis=-2, keepdims=True)
-    scale = np.sqrt(np.mean(np.sum((P - mean) ** 2, axis=-1), axis=-1))[..., None, None]
-    x = (P - mean) / scale
-    # Points first, batch last, for the moment sums.
-    X = np.ascontiguousarray(np.moveaxis(x[..., 0], -1, 0))
-    Y = np.ascontiguousarray(np.moveaxis(x[..., 1], -1, 0))
-    xp = [np.ones_like(X), X, X * X]
-    yp = [xp[0], Y, Y * Y]
-    xp += [xp[2] * X, xp[2] * xp[2]]
-    yp += [yp[2] * Y, yp[2] * yp[2]]
-    moment = {
-        (a, b): np.sum(xp[a] * yp[b], axis=0) if a or b else np.full(X.shape[1:], X.shape[0] * 1.0)
-        for a in range(5)
-        for b in range(5 - a)
-    }
-    mono = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))
+    c, mx, my, inv_scale = _fit_normalised(u, v)
+    # Undo the normalisation x = s (p - m): the conic in p is T^T Cn T, entry by entry.
+    A, B, C, D, E, F = c
+    s, s2 = inv_scale, inv_scale * inv_scale
+    q11, q12, q22 = A * s2, 0.5 * B * s2, C * s2
+    q13 = -(q11 * mx + q12 * my) + 0.5 * D * s
+    q23 = -(q12 * mx + q22 * my) + 0.5 * E * s
+    q33 = q11 * mx * mx + 2.0 * q12 * mx * my + q22 * my * my - s * (D * mx + E * my) + F
+    return q11, q12, q22, q13, q23, q33
+
+
+def fit_ellipse_params_t(u: F64, v: F64) -> F64:
+    """Ellipses ``(5, ...)`` ``(u, v, s11, s12, s22)`` fitted through points ``u``, ``v``
+    ``(M, ...)`` (points first), as :func:`fit_conic_entries_t`.
+
+    The parameters are taken from the conic in the normalised frame and mapped back (a shift
+    and a scale), which keeps the shape to rounding of the ellipse's own size: going through
+    the conic in absolute pixels loses digits to the centre's distance from the origin. NaN
+    where a fit is not a real ellipse.
+    """
+    c, mx, my, inv_scale = _fit_normalised(u, v)
+    out = params_from_entries_t(c[0], 0.5 * c[1], c[2], 0.5 * c[3], 0.5 * c[4], c[5])
+    scale = 1.0 / inv_scale
+    out *= scale
+    out[0] += mx
+    out[1] += my
+    return out
+
+
+def _fit_normalised(u: F64, v: F64) -> tuple[F64, F64, F64, F64]:
+    """Unit conic coefficients ``(6, ...)`` of ``(x^2, xy, y^2, x, y, 1)`` in the normalised
+    frame ``x = s (p - m)`` of points ``u``, ``v`` ``(M, ...)``, and ``m`` (two arrays) and
+    ``s``. See :func:`fit_conic_entries_t`."""
+    count = u.shape[0]
+    mx, my = u.mean(axis=0), v.mean(axis=0)
+    X, Y = u - mx, v - my
+    scale = np.sqrt(np.mean(X * X + Y * Y, axis=0))
+    inv_scale = 1.0 / scale
+    X *= inv_scale
+    Y *= inv_scale
+    # The 14 non-constant monomials x^a y^b (a + b <= 4) in one buffer, summed in one call.
+    mono = np.empty((14, *X.shape))
+    x2, xy, y2 = np.multiply(X, X, out=mono[2]), np.multiply(X, Y, out=mono[3]), mono[4]
+    np.multiply(Y, Y, out=y2)
+    mono[0], mono[1] = X, Y
+    np.multiply(x2, X, out=mono[5])
+    np.multiply(x2, Y, out=mono[6])
+    np.multiply(X, y2, out=mono[7])
+    np.multiply(y2, Y, out=mono[8])
+    np.multiply(x2, x2, out=mono[9])
+    np.multiply(x2, xy, out=mono[10])
+    np.multiply(x2, y2, out=mono[11])
+    np.multiply(xy, y2, out=mono[12])
+    np.multiply(y2, y2, out=mono[13])
+    sums = mono.sum(axis=1)
+    names = (
+        *((1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0), (2, 1), (1, 2), (0, 3)),
+        *((4, 0), (3, 1), (2, 2), (1, 3), (0, 4)),
+    )
+    moment = dict(zip(names, sums, strict=True))
+    moment[(0, 0)] = np.full(X.shape[1:], float(count))
+    mono_order = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))
     M = np.empty((6, 6, *X.shape[1:]))
-    for i, (ai, bi) in enumerate(mono):
-        for j, (aj, bj) in enumerate(mono[i:], start=i):
+    for i, (ai, bi) in enumerate(mono_order):
+        for j, (aj, bj) in enumerate(mono_order[i:], start=i):
             M[i, j] = M[j, i] = moment[(ai + aj, bi + bj)]
     # Inverse iteration. The shift keeps an exact fit (a singular A^T A) invertible without
     # moving the eigenvectors; the convergence factor per step is (l6 + shift) / (l5 + shift).
@@ -483,22 +552,7 @@ def fit_conics(points: ArrayLike) -> F64:
     for _ in range(4):
         c = np.einsum("ij...,j...->i...", Minv, c)
         c /= np.sqrt(np.sum(c * c, axis=0))
-    Cn = np.empty((*P.shape[:-2], 3, 3))
-    Cn[..., 0, 0] = c[0]
-    Cn[..., 0, 1] = Cn[..., 1, 0] = 0.5 * c[1]
-    Cn[..., 1, 1] = c[2]
-    Cn[..., 0, 2] = Cn[..., 2, 0] = 0.5 * c[3]
-    Cn[..., 1, 2] = Cn[..., 2, 1] = 0.5 * c[4]
-    Cn[..., 2, 2] = c[5]
-    # Undo the normalisation x = T p: C = T^T Cn T.
-    T = np.zeros((*P.shape[:-2], 3, 3))
-    s = 1.0 / scale[..., 0, 0]
-    T[..., 0, 0] = T[..., 1, 1] = s
-    T[..., 0, 2] = -mean[..., 0, 0] * s
-    T[..., 1, 2] = -mean[..., 0, 1] * s
-    T[..., 2, 2] = 1.0
-    out: F64 = np.swapaxes(T, -1, -2) @ Cn @ T
-    return out
+    return c, mx, my, inv_scale
 
 
 def ellipse_points(params: ArrayLike, count: int) -> F64:

@@ -4,7 +4,7 @@ The paper takes each fiducial's 3-D position from the ellipse of its central dot
 the TRIP method). Here every fitted concentric circle of the design contributes:
 
 1. **Undistort the boundaries, not the image.** Each fitted ellipse (in distorted pixels) is
-   sampled at 32 points, the points are undistorted through the lens model and a conic is refitted:
+   sampled at 16 points, the points are undistorted through the lens model and a conic is refitted:
    the ideal-camera image of that circle. Its covariance is carried through the local affine part of
    the undistortion.
 2. **Closed form, both solutions.** The pose circle's cone gives the two candidate poses
@@ -47,10 +47,8 @@ from .camera import CameraModel
 from .conic_pose import (
     circle_params_t,
     circle_pose_t,
-    ellipse_points,
-    fit_conics,
+    fit_ellipse_params_t,
     params_from_axes,
-    params_from_conic,
     plane_basis,
 )
 from .errors import PoseError
@@ -66,7 +64,11 @@ DEFAULT_SIGMA_PX = 0.05
 #: pixel at small sizes, which a noise-only covariance does not cover. They still resolve the
 #: ambiguity and refine the normal, without pulling the depth.
 INNER_FLOOR_PX = 0.05
-_UNDISTORT_SAMPLES = 32
+#: Boundary samples per ellipse for the lens correction. The undistorted samples of a fitted
+#: ellipse lie on a conic to far below the fits' noise, so evenly spaced samples beyond the
+#: five a conic needs change nothing: 12, 16, 32 and 64 give the same ideal ellipse to 1e-12 px
+#: (k1 up to -0.25 over a 3008x2000 frame), 8 to 1e-10 px. 16 keeps a margin.
+_UNDISTORT_SAMPLES = 16
 _GN_ITERATIONS = 1
 
 
@@ -199,6 +201,17 @@ def _gather_covariances(covs: list[NDArray[np.float64]]) -> F64:
     """``(M, 5, 5)`` float64 covariances; NaNs for those without the shape ``(5, 5)``."""
     m = len(covs)
     try:
+        # Native float64 blocks are joined through the buffer protocol: one copy, without the
+        # per-array conversion numpy.concatenate does. Non-arrays have no dtype, non-contiguous
+        # arrays export no buffer, and any size other than 25 values each shows in the total.
+        if set(map(attrgetter("dtype"), covs)) == {_F64}:
+            # (ndarrays export the buffer protocol; numpy does not declare it to the checker)
+            flat = np.frombuffer(b"".join(covs), dtype=np.float64)  # type: ignore[arg-type]
+            if flat.size == 25 * m:
+                return flat.reshape(m, 5, 5)
+    except (AttributeError, TypeError, BufferError):
+        pass
+    try:
         # One concatenation of (5, 5) blocks; any other shape mixes fail here or in the size.
         out = np.concatenate(covs, dtype=np.float64)
         if out.shape in ((5 * m, 5), (25 * m,)):
@@ -206,6 +219,9 @@ def _gather_covariances(covs: list[NDArray[np.float64]]) -> F64:
     except ValueError:
         pass
     return np.stack([_cov_or_nan(c) for c in covs])
+
+
+_F64 = np.dtype(np.float64)
 
 
 def _cov_or_nan(cov: object) -> F64:
@@ -330,9 +346,14 @@ def estimate_arrays(
     idx = np.arange(n)
     # Joint refinement of the better candidate over all circles.
     # Circles whose floored weight is below 1 % of their own fit's add nothing measurable to
-    # the refinement (they already did their job in the ambiguity test): leave them out.
-    keep = np.ones(kc, dtype=bool)
-    keep[1:] = (lam[1:] >= 0.01).any(axis=1)
+    # the refinement (they already did their job in the ambiguity test): leave them out, per
+    # fiducial (weight 0), so that a pose never depends on the other fiducials in the batch,
+    # and from the arrays where that holds for every fiducial.
+    small = lam < 0.01
+    keep = np.array(~small.all(axis=1), dtype=bool)
+    keep[0] = True
+    if small.any():
+        lam = np.where(small, 0.0, lam)
     if not keep.all():
         obs_n, W, lam, safe_r = obs_n[:, keep], W[:, :, keep], lam[keep], safe_r[keep]
     c_best, normal, cov_c, chi2 = _gauss_newton(
@@ -443,24 +464,29 @@ def _undistort(
     obs: F64, cov: F64, present: NDArray[np.bool_], camera: CameraModel
 ) -> tuple[F64, F64]:
     """Ideal-camera ellipses ``(5, ...)`` of fitted (distorted) ones, with propagated
-    covariances ``(5, 5, ...)``."""
+    covariances ``(5, 5, ...)``.
+
+    All boundary samples of all ellipses are undistorted in one vectorised Newton call, in the
+    layout ``(samples, ...)`` with the coordinates as separate arrays, and the conics refitted
+    from the same layout (no per-fiducial work, no ``(N, 2)`` interleaving).
+    """
     safe = np.where(present, obs, _NOMINAL_ELLIPSE)
-    # Local affine part of the undistortion at the centre (central differences, 0.5 px), and
-    # the centre itself.
-    h = 0.5
-    c = np.moveaxis(safe[:2], 0, -1).reshape(-1, 2)
-    du, dv = np.array([h, 0.0]), np.array([0.0, h])
-    probe = np.concatenate([c + du, c - du, c + dv, c - dv, c])
-    m = camera.undistort_pixels(probe).reshape(5, -1, 2)
-    A = np.stack([(m[0] - m[1]) / (2 * h), (m[2] - m[3]) / (2 * h)], axis=-1)  # (M, 2, 2)
-    # The boundary samples, undistorted from the affine prediction (fewer Newton steps, same
-    # converged points), and a conic refitted through them.
-    pts = ellipse_points(np.moveaxis(safe, 0, -1), _UNDISTORT_SAMPLES)  # (K, N, S, 2)
-    flat = pts.reshape(len(c), -1, 2)
-    guess = m[4][:, None, :] + np.einsum("mij,msj->msi", A, flat - c[:, None, :])
-    und = camera.undistort_pixels(flat.reshape(-1, 2), guess.reshape(-1, 2)).reshape(pts.shape)
-    new = np.moveaxis(params_from_conic(fit_conics(und)), -1, 0)
-    A = np.moveaxis(A, 0, -1).reshape(2, 2, *obs.shape[1:])  # (2, 2, K, N)
+    u, v, s11, s12, s22 = safe
+    # The undistorted centre and the local affine part of the undistortion there (the lens
+    # model's own Jacobian, inverted).
+    mu, mv, (a00, a01, a10, a11) = camera.undistortion_jacobian(u, v)
+    # The boundary samples c + S (cos t, sin t), undistorted from the affine prediction (fewer
+    # Newton steps, same converged points), and a conic refitted through them.
+    t = np.linspace(0.0, 2.0 * np.pi, _UNDISTORT_SAMPLES, endpoint=False)
+    cos = np.cos(t).reshape(-1, *([1] * u.ndim))
+    sin = np.sin(t).reshape(cos.shape)
+    du = s11 * cos + s12 * sin  # (S, K, N): offsets from the centre
+    dv = s12 * cos + s22 * sin
+    guess = (mu + a00 * du + a01 * dv, mv + a10 * du + a11 * dv)
+    uu, vv = camera.undistort_components(u + du, v + dv, guess)
+    new = fit_ellipse_params_t(uu, vv)
+    A = np.empty((2, 2, *u.shape))
+    A[0, 0], A[0, 1], A[1, 0], A[1, 1] = a00, a01, a10, a11
     J = _affine_params_jacobian(safe, A)
     newcov = np.einsum("ij...,kj...->ik...", np.einsum("ij...,jk...->ik...", J, cov), J)
     new = np.where(present, new, np.nan)
@@ -469,7 +495,17 @@ def _undistort(
 
 def _affine_params(p: F64, A: F64) -> F64:
     """Parameters ``(5, ...)`` of the ellipses ``p`` mapped by the linear maps ``A`` (2, 2, ...)."""
-    s11, s12, s22 = p[2], p[3], p[4]
+    c0 = A[0, 0] * p[0] + A[0, 1] * p[1]
+    c1 = A[1, 0] * p[0] + A[1, 1] * p[1]
+    s11, s12, s22 = _affine_shape(p[2], p[3], p[4], A)
+    shape = np.broadcast_shapes(c0.shape, s11.shape)
+    out = np.empty((5, *shape))
+    out[0], out[1], out[2], out[3], out[4] = c0, c1, s11, s12, s22
+    return out
+
+
+def _affine_shape(s11: F64, s12: F64, s22: F64, A: F64) -> tuple[F64, F64, F64]:
+    """Square-root shape ``(s11, s12, s22)`` of ellipses of shape ``S`` mapped by ``A``."""
     # M = (A S)(A S)^T with S = [[s11, s12], [s12, s22]].
     as11 = A[0, 0] * s11 + A[0, 1] * s12
     as12 = A[0, 0] * s12 + A[0, 1] * s22
@@ -480,22 +516,28 @@ def _affine_params(p: F64, A: F64) -> F64:
     m22 = as21 * as21 + as22 * as22
     root = np.sqrt(m11 * m22 - m12 * m12)
     t = np.sqrt(m11 + m22 + 2.0 * root)
-    c0 = A[0, 0] * p[0] + A[0, 1] * p[1]
-    c1 = A[1, 0] * p[0] + A[1, 1] * p[1]
-    shape = np.broadcast_shapes(c0.shape, m11.shape)
-    out = np.empty((5, *shape))
-    out[0], out[1], out[2], out[3], out[4] = c0, c1, (m11 + root) / t, m12 / t, (m22 + root) / t
-    return out
+    return (m11 + root) / t, m12 / t, (m22 + root) / t
 
 
 def _affine_params_jacobian(p: F64, A: F64) -> F64:
-    """Numerical Jacobian of :func:`_affine_params` w.r.t. ``p``, shape ``(5, 5, ...)``."""
-    J = np.empty((5, 5, *np.broadcast_shapes(p.shape[1:], A.shape[2:])))
-    step = np.zeros((5, *([1] * (p.ndim - 1))))
-    for j in range(5):
-        step[j] = 1e-4
-        J[:, j] = (_affine_params(p + step, A) - _affine_params(p - step, A)) / 2e-4
-        step[j] = 0.0
+    """Jacobian of :func:`_affine_params` w.r.t. ``p``, shape ``(5, 5, ...)``.
+
+    Block diagonal: the centre maps linearly (its block is ``A`` itself) and the shape does not
+    depend on the centre; only the shape block is differentiated numerically (central
+    differences).
+    """
+    J = np.zeros((5, 5, *np.broadcast_shapes(p.shape[1:], A.shape[2:])))
+    J[:2, :2] = A
+    s = [p[2], p[3], p[4]]
+    for j in range(3):
+        base = s[j]
+        s[j] = base + 1e-4
+        plus = _affine_shape(s[0], s[1], s[2], A)
+        s[j] = base - 1e-4
+        minus = _affine_shape(s[0], s[1], s[2], A)
+        s[j] = base
+        for i in range(3):
+            J[2 + i, 2 + j] = (plus[i] - minus[i]) / 2e-4
     return J
 
 
@@ -544,6 +586,13 @@ def _gauss_newton(
     but depth comes from the pose circle alone, so a size bias of the inner edges (toner spread,
     blur of a nearby track) cannot leak into z. ``iterations >= 1``.
 
+    Each scale belongs to one circle only, so it is profiled out in closed form (a Schur
+    complement): circle ``k``'s weight becomes ``P = W - W d d^T W / (d^T W d)`` with ``d`` its
+    scale column, which leaves a 5-parameter problem in centre and normal whose step, inverse
+    (the position block of the full inverse) and sandwich covariance are exactly those of the
+    full problem with the scales (``P W^-1 P = P``), at the cost of 5x5 instead of
+    ``(4 + K)``-square systems.
+
     Returns centres ``(3, N)``, normals ``(3, N)``, the covariances of the centres ``(3, 3, N)``
     and the final weighted chi-square ``(N,)``.
     """
@@ -551,11 +600,13 @@ def _gauss_newton(
     n = normal.copy()
     rad = radius.copy()
     kc = radius.shape[0]
-    extra = kc - 1 if free_scale else 0
-    npar = 5 + extra
+    extra = free_scale and kc > 1
     cov = np.zeros((3, 3, *c.shape[1:]))
     chi2 = np.zeros(c.shape[1:])
-    Wl = W * lam
+    # Where every weight is 0 or 1, B = A and the covariance is A^-1 itself (the sandwich
+    # product would only add rounding, amplified by A's condition), fiducial by fiducial.
+    plain = ((lam == 0.0) | (lam == 1.0)).all(axis=0)
+    all_plain = bool(plain.all())
     for _ in range(iterations):
         e1, e2 = (np.stack(e) for e in plane_basis((n[0], n[1], n[2])))
         # The base pose and perturbed ones (forward differences: steps far below the noise, far
@@ -575,46 +626,57 @@ def _gauss_newton(
             rs[6, 1:] *= 1.0 + da
         pred = circle_params_t(cs[:, :, None], ns[:, :, None], rs)  # (5, m, K, N)
         base = pred[:, 0]
-        J = np.zeros((5, npar, *base.shape[1:]))  # (5, P, K, N)
+        J = np.empty((5, 5, *base.shape[1:]))  # (5, 5, K, N): centre and normal columns
         J[:, :3] = (pred[:, 1:4] - base[:, None]) / h
         J[:, 3:5] = (pred[:, 4:6] - base[:, None]) / da
-        if extra:
-            ds = (pred[:, 6] - base) / da  # (5, K, N): each circle's own scale column
-            for k in range(1, kc):
-                J[:, 4 + k, k] = ds[:, k]
         res = obs - base
-        if not np.isfinite(res.sum() + J.sum()):  # degenerate predictions contribute nothing
+        # Each circle's own scale column (zero for the pose circle, whose radius is known).
+        ds = (pred[:, 6] - base) / da if extra else None  # (5, K, N)
+        check = res.sum() + J.sum() + (0.0 if ds is None else ds.sum())
+        if not np.isfinite(check):  # degenerate predictions contribute nothing
             J = np.where(np.isfinite(J), J, 0.0)
             res = np.where(np.isfinite(res), res, 0.0)
-        WJ = np.einsum("ij...,jq...->iq...", Wl, J)  # lam_k W J
-        terms = np.einsum("ip...,iq...->pq...", J, WJ)  # (P, P, K, N), lam_k J^T W J
-        info = terms.sum(axis=-2)
-        grad = np.einsum("ip...,i...->p...", WJ, res).sum(axis=-2)  # (P, N)
-        chi2_lin = _quadratic(res, Wl)
+            ds = None if ds is None else np.where(np.isfinite(ds), ds, 0.0)
+        P = W
+        if ds is not None:
+            Wd = np.einsum("ij...,j...->i...", W, ds)  # (5, K, N)
+            alpha = np.einsum("i...,i...->...", ds, Wd)  # (K, N)
+            with np.errstate(divide="ignore"):
+                inv_alpha = np.where(alpha > 0, 1.0 / alpha, 0.0)
+            P = W - Wd[:, None] * (Wd * inv_alpha)[None]
+        PJ = np.einsum("ijkn,jqkn->iqkn", P * lam, J)  # lam_k P J
+        info = np.einsum("ipkn,iqkn->pqn", J, PJ)  # (5, 5, N), sum over circles
+        grad = np.einsum("ipkn,ikn->pn", PJ, res)  # (5, N)
+        chi2_lin = _quadratic(res, P * lam)
         # A tiny damping only guards against singular steps (e.g. a missing inner circle).
         damp = 1e-12 * info.trace() + 1e-300
-        for i in range(npar):
+        for i in range(5):
             info[i, i] += damp
         inv_info = spd_inverse(info)
         delta = np.einsum("pq...,q...->p...", inv_info, grad)
-        if (lam == 1.0).all():
+        if all_plain:
             cov = inv_info[:3, :3]
         else:
             # Sandwich covariance of the position block only (what is reported).
-            B = np.sum(terms * lam, axis=-2)
+            B = np.einsum("ipkn,iqkn,kn->pqn", J, PJ, lam)  # sum lam_k^2 J^T P J
             cov = np.einsum(
                 "ip...,pj...->ij...",
                 inv_info[:3],
                 np.einsum("pq...,qj...->pj...", B, inv_info[:, :3]),
             )
+            if plain.any():
+                cov = np.where(plain, inv_info[:3, :3], cov)
         if not np.isfinite(delta.sum()):
             delta = np.where(np.isfinite(delta), delta, 0.0)
         chi2 = np.maximum(chi2_lin - (grad * delta).sum(axis=0), 0.0)
+        if ds is not None:
+            # The profiled scales at the new centre and normal: d^T W (r - J delta) / (d^T W d).
+            r_new = res - np.einsum("ipkn,pn->ikn", J, delta)
+            scale = np.einsum("ikn,ikn->kn", Wd, r_new) * inv_alpha
+            rad[1:] *= 1.0 + scale[1:]
         c = c + delta[:3]
         n = n + delta[3] * e1 + delta[4] * e2
         n /= np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-        if extra:
-            rad[1:] *= 1.0 + delta[5:]
     # The covariance of the last linearisation serves the final point, and its chi-square is the
     # linearised one (res^T W res - grad^T delta): the step is far below the scale on which the
     # Jacobian changes.

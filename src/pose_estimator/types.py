@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections import deque
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from itertools import repeat
 
 import numpy as np
 from numpy.typing import NDArray
@@ -56,23 +58,26 @@ class FiducialPose:
         them, ``n_frames = 1``).
 
         The estimator makes hundreds per frame; the generated ``__init__`` of a frozen dataclass
-        costs a slow ``object.__setattr__`` call per field, so the slots are filled directly.
+        costs a slow ``object.__setattr__`` call per field, so the slots are filled directly, one
+        field at a time over all poses by ``map`` (no Python-level loop per pose).
         """
-        new = object.__new__
-        set_code, set_pos, set_normal, set_cov, set_det, set_frames = (
-            getattr(cls, name).__set__
-            for name in ("code", "position_mm", "normal", "covariance_mm2", "detection", "n_frames")
-        )
-        out = []
-        for code, pos, normal, cov, det in zip(
-            codes, positions_mm, normals, covariances_mm2, detections, strict=True
-        ):
-            pose = new(cls)
-            set_code(pose, code)
-            set_pos(pose, pos)
-            set_normal(pose, normal)
-            set_cov(pose, cov)
-            set_det(pose, det)
-            set_frames(pose, 1)
-            out.append(pose)
+        columns: dict[str, list[object]] = {
+            "code": list(codes),
+            "position_mm": list(positions_mm),
+            "normal": list(normals),
+            "covariance_mm2": list(covariances_mm2),
+            "detection": list(detections),
+        }
+        n = len(columns["code"])
+        if any(len(values) != n for values in columns.values()):
+            sizes = {name: len(values) for name, values in columns.items()}
+            raise ValueError(f"from_rows needs parallel iterables of one length, got {sizes}")
+        out: list[FiducialPose] = list(map(object.__new__, repeat(cls, n)))
+        columns["n_frames"] = [1] * n
+        for name, values in columns.items():
+            _consume(map(getattr(cls, name).__set__, out, values))
         return out
+
+
+#: Runs an iterator to exhaustion, keeping nothing.
+_consume: Callable[[Iterable[object]], None] = deque[object](maxlen=0).extend

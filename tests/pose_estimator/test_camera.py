@@ -54,6 +54,61 @@ def test_undistort_guess_only_saves_iterations(model: str) -> None:
     np.testing.assert_allclose(cam.undistort_pixels(uv, guess), plain, rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("model", sorted(MODELS))
+def test_undistort_components_match_opencv(model: str) -> None:
+    """The component-wise undistortion (any array shape, one vectorised Newton call) equals
+    OpenCV's iterative inverse run to convergence, and the ``(N, 2)`` methods built on it."""
+    import cv2
+
+    cam = CameraModel(3008, 2000, np.array(K), model, np.array(MODELS[model]))
+    rng = np.random.default_rng(1234)
+    u = rng.uniform(0.0, 3007.0, size=(7, 40))
+    v = rng.uniform(0.0, 1999.0, size=(7, 40))
+    got_u, got_v = cam.undistort_components(u, v)
+    assert got_u.shape == got_v.shape == (7, 40)
+    src = np.stack([u.ravel(), v.ravel()], axis=-1).reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    # OpenCV 4 names the variant with termination criteria undistortPointsIter; OpenCV 5 folds
+    # the criteria into undistortPoints. Normalised coordinates either way.
+    iterate = getattr(cv2, "undistortPointsIter", None)
+    if iterate is not None:
+        ref = iterate(src, cam.K, cam.D, None, None, criteria)
+    else:
+        ref = cv2.undistortPoints(src, cam.K, cam.D, None, np.eye(3), np.eye(3), criteria)
+    ref = ref.reshape(-1, 2) * np.diag(cam.K)[:2] + cam.K[:2, 2]
+    np.testing.assert_allclose(got_u.ravel(), ref[:, 0], rtol=0, atol=1e-7)
+    np.testing.assert_allclose(got_v.ravel(), ref[:, 1], rtol=0, atol=1e-7)
+    pairs = cam.undistort_pixels(np.stack([u.ravel(), v.ravel()], axis=-1))
+    np.testing.assert_array_equal(pairs, np.stack([got_u.ravel(), got_v.ravel()], axis=-1))
+    # Normalised output, and a guess in the output's unit, give the same points.
+    x, y = cam.undistort_components(u, v, (got_u + 0.03, got_v - 0.02))
+    np.testing.assert_allclose(x, got_u, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(y, got_v, rtol=0, atol=1e-9)
+    nx, ny = cam.undistort_components(u, v, pixels=False)
+    np.testing.assert_allclose(nx * cam.K[0, 0] + cam.K[0, 2], got_u, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ny * cam.K[1, 1] + cam.K[1, 2], got_v, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("model", sorted(MODELS))
+def test_undistortion_jacobian_matches_finite_differences(model: str) -> None:
+    """The analytic Jacobian of the undistortion (pixels to ideal pixels) equals central
+    differences of the undistortion itself, over the whole frame."""
+    cam = CameraModel(3008, 2000, np.array(K), model, np.array(MODELS[model]))
+    rng = np.random.default_rng(1234)
+    u = rng.uniform(0.0, 3007.0, size=(3, 50))
+    v = rng.uniform(0.0, 1999.0, size=(3, 50))
+    iu, iv, A = cam.undistortion_jacobian(u, v)
+    np.testing.assert_array_equal(np.stack([iu, iv]), np.stack(cam.undistort_components(u, v)))
+    h = 1e-3
+    pu, pv = cam.undistort_components(u + h, v)
+    mu, mv = cam.undistort_components(u - h, v)
+    qu, qv = cam.undistort_components(u, v + h)
+    nu, nv = cam.undistort_components(u, v - h)
+    num = np.stack([pu - mu, qu - nu, pv - mv, qv - nv]) / (2 * h)
+    np.testing.assert_allclose(A, num, rtol=0, atol=1e-8)
+    assert np.max(np.abs(A[1])) > 1e-3  # a real shear near the corners
+
+
 @pytest.mark.parametrize(
     ("doc", "match"),
     [

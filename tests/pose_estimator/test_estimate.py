@@ -230,6 +230,8 @@ def test_poses_from_rows_equal_constructed_poses() -> None:
         for field in dataclasses.fields(FiducialPose):
             a, b = getattr(pose, field.name), getattr(ref, field.name)
             assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b, field.name
+    with pytest.raises(ValueError, match="one length"):
+        FiducialPose.from_rows(codes, pos[:2], nrm, cov, [None, None, None])
 
 
 def test_detection_covariances_carried_to_shape_parameters() -> None:
@@ -256,3 +258,142 @@ def test_detection_covariances_carried_to_shape_parameters() -> None:
             assert radius[i, k] == pytest.approx(3.55 * e.radius)
         assert np.all(np.isnan(obs[i, len(d.ellipses) :]))
         assert np.all(np.isnan(cov[i, len(d.ellipses) :]))
+
+
+def _scattered_detections(camera: CameraModel, count: int, seed: int) -> list:
+    """Ring detections over the whole frame (600-900 mm, slant 0-70 deg) with honest noise."""
+    rng = np.random.default_rng(seed)
+    dets = []
+    for i in range(count):
+        z = rng.uniform(600.0, 900.0)
+        x = rng.uniform(-0.4, 0.4) * camera.width * z / camera.K[0, 0]
+        y = rng.uniform(-0.4, 0.4) * camera.height * z / camera.K[1, 1]
+        R = rotation_from_slant_tilt(np.radians(rng.uniform(0.0, 70.0)), rng.uniform(0, 6.28))
+        target = Target(i % 66, "ring", 7.1, R, np.array([x, y, z]))
+        dets.append(synthetic_detection(camera, target, 0.02, rng))
+    return dets
+
+
+@pytest.mark.parametrize("lens", [False, True])
+def test_batch_equals_per_fiducial_reference(lens: bool) -> None:
+    """Posing a whole frame at once gives each fiducial the pose, normal and covariance it gets
+    alone (the batched arithmetic shares nothing between fiducials), also through the lens."""
+    cam = CAMERA
+    if lens:
+        cam = CameraModel(3008, 2000, CAMERA.K, "plumb_bob", np.array([-0.2, 0.1, 1e-3, -8e-4, 0]))
+    dets = _scattered_detections(cam, 24, 5)
+    batch = estimate(dets, cam, 7.1)
+    assert len(batch) == len(dets)
+    for det, pose in zip(dets, batch, strict=True):
+        (alone,) = estimate([det], cam, 7.1)
+        assert pose.detection is det and pose.code == alone.code
+        # To rounding: the lens correction iterates until every point of the batch converged,
+        # and the covariance's forward-difference Jacobian turns a last-bit change of its input
+        # into ~1e-10 of itself, which the inverse amplifies by its condition (~1e5).
+        np.testing.assert_allclose(pose.position_mm, alone.position_mm, rtol=0, atol=1e-7)
+        np.testing.assert_allclose(pose.normal, alone.normal, rtol=0, atol=1e-9)
+        scale = np.max(np.abs(alone.covariance_mm2))
+        np.testing.assert_allclose(pose.covariance_mm2, alone.covariance_mm2, atol=2e-4 * scale)
+
+
+@pytest.mark.parametrize("free_scale", [True, False])
+def test_profiled_scales_equal_the_full_gauss_newton(free_scale: bool) -> None:
+    """The refinement with the inner circles' scales profiled out in closed form takes the step,
+    covariance (sandwich) and chi-square of the full problem solved densely per fiducial."""
+    from pose_estimator.conic_pose import circle_params, plane_basis
+    from pose_estimator.estimate import _gauss_newton
+
+    rng = np.random.default_rng(1234)
+    n_fid, radii = 12, np.array([3.55, 2.84, 0.85])
+    centers = np.column_stack(
+        [rng.uniform(-60, 60, n_fid), rng.uniform(-40, 40, n_fid), rng.uniform(600, 900, n_fid)]
+    )
+    normals = []
+    for _ in range(n_fid):
+        R = rotation_from_slant_tilt(np.radians(rng.uniform(5, 70)), rng.uniform(0, 6.28))
+        normals.append(-R[:, 2] * np.sign(R[2, 2]))
+    normals = np.array(normals)
+    obs = np.stack(
+        [circle_params(centers, normals, r * rng.uniform(0.98, 1.02, n_fid)) for r in radii]
+    )  # (K, N, 5), normalised coordinates
+    obs += rng.normal(0.0, 2e-6, obs.shape)
+    G = rng.normal(size=(3, n_fid, 5, 5))
+    W = (G @ np.swapaxes(G, -1, -2) + 0.5 * np.eye(5)) * 1e10  # information, (K, N, 5, 5)
+    lam = np.stack([np.ones(n_fid), rng.uniform(0.1, 1, n_fid), rng.uniform(0.1, 1, n_fid)])
+    start_c = centers + rng.normal(0.0, 0.05, centers.shape)
+    start_n = normals + rng.normal(0.0, 1e-3, normals.shape)
+    start_n /= np.linalg.norm(start_n, axis=1, keepdims=True)
+    r_kn = np.repeat(radii[:, None], n_fid, axis=1)
+    c, nrm, cov, chi2 = _gauss_newton(
+        np.ascontiguousarray(obs.transpose(2, 0, 1)),
+        np.ascontiguousarray(W.transpose(2, 3, 0, 1)),
+        lam,
+        r_kn,
+        start_c.T.copy(),
+        start_n.T.copy(),
+        1,
+        free_scale,
+    )
+    for i in range(n_fid):
+        c0, n0 = start_c[i], start_n[i]
+        e1, e2 = (np.array(e) for e in plane_basis(tuple(n0)))
+        h, da = 1e-6 * c0[2], 1e-6
+        npar = 5 + (2 if free_scale else 0)
+        A, B, g, chi2_lin = np.zeros((npar, npar)), np.zeros((npar, npar)), np.zeros(npar), 0.0
+        for k in range(3):
+            base = circle_params(c0, n0, radii[k])
+            J = np.zeros((5, npar))
+            for j in range(3):
+                dc = np.zeros(3)
+                dc[j] = h
+                J[:, j] = (circle_params(c0 + dc, n0, radii[k]) - base) / h
+            for j, e in enumerate((e1, e2)):
+                nn = n0 + da * e
+                nn /= np.sqrt(nn[0] ** 2 + nn[1] ** 2 + nn[2] ** 2)
+                J[:, 3 + j] = (circle_params(c0, nn, radii[k]) - base) / da
+            if free_scale and k > 0:
+                J[:, 4 + k] = (circle_params(c0, n0, radii[k] * (1 + da)) - base) / da
+            res = obs[k, i] - base
+            A += lam[k, i] * J.T @ W[k, i] @ J
+            B += lam[k, i] ** 2 * J.T @ W[k, i] @ J
+            g += lam[k, i] * J.T @ W[k, i] @ res
+            chi2_lin += lam[k, i] * res @ W[k, i] @ res
+        delta = np.linalg.solve(A, g)
+        Ainv = np.linalg.inv(A)
+        want_cov = (Ainv @ B @ Ainv)[:3, :3]
+        # Equal but for the refinement's guard damping (1e-12 of the trace) and rounding, both
+        # amplified by the condition number of A (~1e6: depth against size).
+        tol = 1e-5 * np.max(np.abs(delta[:3]))
+        np.testing.assert_allclose(c[:, i], c0 + delta[:3], rtol=0, atol=tol)
+        new_n = n0 + delta[3] * e1 + delta[4] * e2
+        np.testing.assert_allclose(nrm[:, i], new_n / np.linalg.norm(new_n), rtol=0, atol=1e-7)
+        np.testing.assert_allclose(cov[:, :, i], want_cov, rtol=0, atol=1e-5 * want_cov.max())
+        # res^T W res - g^T delta cancels: compare on the scale of its terms.
+        assert chi2[i] == pytest.approx(max(chi2_lin - g @ delta, 0.0), abs=1e-6 * chi2_lin)
+
+
+def test_vectorised_lens_correction_equals_per_ellipse_reference() -> None:
+    """All fitted boundaries undistorted in one call give, ellipse by ellipse, the conic refitted
+    through the same boundary samples undistorted by OpenCV one ellipse at a time."""
+    import cv2
+
+    from pose_estimator.conic_pose import ellipse_points, fit_conics, params_from_conic
+    from pose_estimator.estimate import _UNDISTORT_SAMPLES, _undistort
+
+    cam = CameraModel(3008, 2000, CAMERA.K, "plumb_bob", np.array([-0.2, 0.1, 1e-3, -8e-4, 0.0]))
+    dets = _scattered_detections(cam, 10, 7)
+    obs, cov, _ = detections_to_arrays(dets, 3.55)
+    obs_t = np.ascontiguousarray(obs.transpose(2, 1, 0))
+    cov_t = np.ascontiguousarray(cov.transpose(2, 3, 1, 0))
+    got, _ = _undistort(obs_t, cov_t, np.ones(obs_t.shape[1:], dtype=bool), cam)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    iterate = getattr(cv2, "undistortPointsIter", None)
+    for i in range(obs.shape[0]):
+        for k in range(obs.shape[1]):
+            pts = ellipse_points(obs[i, k], _UNDISTORT_SAMPLES).reshape(-1, 1, 2)
+            if iterate is not None:
+                und = iterate(pts, cam.K, cam.D, None, cam.K, criteria)
+            else:
+                und = cv2.undistortPoints(pts, cam.K, cam.D, None, np.eye(3), cam.K, criteria)
+            want = params_from_conic(fit_conics(und.reshape(-1, 2)))
+            np.testing.assert_allclose(got[:, k, i], want, rtol=0, atol=2e-6)
