@@ -111,14 +111,9 @@ def stage_times(image: NDArray[Any], design: str, repeats: int) -> list[tuple[st
         repeats,
     )
     _, t_fin, _ = timed(
-        lambda: _detect_module.finish_candidates(
-            image,
-            255.0,
-            _detect_module._candidates(bounds, spec, min_d, max_d),
-            ReaderConfig(),
-            "profile",  # the default sub-pixel method
-            _detect_module._noise_std(image),  # the frame's noise, estimated once
-        ),
+        lambda: _detect_module._finish(
+            image, 255.0, _detect_module._candidates(bounds, spec, min_d, max_d), ReaderConfig()
+        ),  # the default sub-pixel method
         1,
     )
     return [

@@ -362,8 +362,7 @@ def launch_processes(
             if out is not None:
                 out.close()
             if niceness.get(name, 0) > 0:
-                # Raised right after the start, before the node has done any work; the
-                # detector's worker processes inherit it.
+                # Raised right after the start, before the node has done any work.
                 with contextlib.suppress(OSError):
                     nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + niceness[name])
                     os.setpriority(os.PRIO_PROCESS, procs[name].pid, nice)

@@ -29,7 +29,6 @@ Pixel convention: ``(u, v)`` = (x, y) = (column, row), pixel centres at integer 
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -132,7 +131,7 @@ class DetectorConfig:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class Candidates:
+class _Candidates:
     """Coarse pose ellipses of N candidates of one design."""
 
     design: FiducialDesign
@@ -188,38 +187,6 @@ def detect(
     DetectorError
         If the image has an unsupported shape, dtype or value range, or a parameter is invalid.
     """
-    config = detector_config(
-        design=design,
-        threshold_window=threshold_window,
-        threshold_t=threshold_t,
-        min_diameter_px=min_diameter_px,
-        max_diameter_px=max_diameter_px,
-        max_hamming=max_hamming,
-        min_contrast=min_contrast,
-        subpixel=subpixel,
-    )
-    grey, full_scale = to_grey(image)
-    return detect_grey(grey, full_scale, config)
-
-
-def detector_config(
-    *,
-    design: DesignChoice = "any",
-    threshold_window: int | None = None,
-    threshold_t: float = DEFAULT_T,
-    min_diameter_px: float = MIN_OUTER_DIAMETER_PX,
-    max_diameter_px: float | None = None,
-    max_hamming: int = 1,
-    min_contrast: float = DEFAULT_MIN_CONTRAST,
-    subpixel: SubpixelMethod = "profile",
-) -> DetectorConfig:
-    """:func:`detect`'s keyword arguments, validated, as a :class:`DetectorConfig`.
-
-    Raises
-    ------
-    DetectorError
-        If a parameter is invalid.
-    """
     if design not in ("any", "ring", "dot"):
         raise DetectorError(f"design must be 'any', 'ring' or 'dot', got {design!r}")
     if max_hamming not in (0, 1):
@@ -230,7 +197,7 @@ def detector_config(
         raise DetectorError(f"min_diameter_px must be > 0, got {min_diameter_px}")
     if subpixel not in SUBPIXEL_METHODS:
         raise DetectorError(f"subpixel must be one of {SUBPIXEL_METHODS}, got {subpixel!r}")
-    return DetectorConfig(
+    config = DetectorConfig(
         design=design,
         threshold_window=threshold_window,
         threshold_t=threshold_t,
@@ -239,6 +206,8 @@ def detector_config(
         reader=ReaderConfig(min_contrast=min_contrast, max_hamming=max_hamming),
         subpixel=subpixel,
     )
+    grey, full_scale = to_grey(image)
+    return detect_grey(grey, full_scale, config)
 
 
 def to_grey(image: NDArray[np.generic]) -> tuple[NDArray[np.generic], float]:
@@ -297,27 +266,10 @@ def _to_uint8(grey: NDArray[Any], full_scale: float) -> NDArray[np.uint8]:
     return np.asarray(cv2.convertScaleAbs(grey, alpha=alpha), dtype=np.uint8)
 
 
-#: Step 4 on one design's candidates: ``(grey, full_scale, candidates, reader, subpixel, noise)``
-#: -> detections (:func:`finish_candidates`, or a stand-in that shares the work out).
-FinishStep = Callable[
-    [NDArray[np.generic], float, "Candidates", ReaderConfig, SubpixelMethod, float],
-    list[FiducialDetection],
-]
-
-
 def detect_grey(
-    grey: NDArray[np.generic],
-    full_scale: float,
-    config: DetectorConfig,
-    *,
-    finish: FinishStep | None = None,
+    grey: NDArray[np.generic], full_scale: float, config: DetectorConfig
 ) -> list[FiducialDetection]:
-    """:func:`detect` on an already validated one-channel image (see :func:`to_grey`).
-
-    ``finish`` replaces :func:`finish_candidates` (the candidates' reads and fits, each
-    candidate's independent of the others'), e.g. by one that splits them over processes.
-    """
-    finish_step: FinishStep = finish if finish is not None else finish_candidates
+    """:func:`detect` on an already validated one-channel image (see :func:`to_grey`)."""
     h, w = grey.shape
     binary = bradley_threshold(
         _to_uint8(grey, full_scale), window=config.threshold_window, t=config.threshold_t
@@ -332,11 +284,9 @@ def detect_grey(
     for design in designs:
         cands = _candidates(bounds, design, config.min_diameter_px, max_d)
         cands = _outside(cands, found)
-        if len(cands.centre) == 0:
-            continue
-        if noise is None:
+        if noise is None and len(cands.centre):
             noise = _noise_std(grey)
-        found += finish_step(grey, full_scale, cands, config.reader, config.subpixel, noise)
+        found += _finish(grey, full_scale, cands, config.reader, config.subpixel, noise)
     found = _deduplicate(found)
     found.sort(key=lambda d: (d.center_px[1], d.center_px[0]))
     return found
@@ -344,7 +294,7 @@ def detect_grey(
 
 def _candidates(
     bounds: Boundaries, design: FiducialDesign, min_d: float, max_d: float
-) -> Candidates:
+) -> _Candidates:
     """Boundaries that could be the pose circle of ``design``: conservative tests on the size the
     fiducial would have, on ellipticity and on eccentricity (vectorised)."""
     r0 = design.pose_circle.radius
@@ -355,10 +305,10 @@ def _candidates(
     keep &= (bounds.ellipticity > MIN_ELLIPTICITY) & (b >= MIN_ASPECT * a) & (b >= 1.0)
     sel = bounds.select(keep)
     n = len(sel)
-    return Candidates(design, sel.centre, sel.axes, sel.angle, np.zeros((n, 2)))
+    return _Candidates(design, sel.centre, sel.axes, sel.angle, np.zeros((n, 2)))
 
 
-def _outside(cands: Candidates, found: list[FiducialDetection]) -> Candidates:
+def _outside(cands: _Candidates, found: list[FiducialDetection]) -> _Candidates:
     """Drop candidates that :func:`_deduplicate` would drop anyway, before reading them.
 
     ``found`` holds detections of a design ranked before ``cands``' (the ``ring`` design comes
@@ -382,22 +332,21 @@ def _outside(cands: Candidates, found: list[FiducialDetection]) -> Candidates:
         keep[lo : lo + 1024] = ~inside
     if np.all(keep):
         return cands
-    return Candidates(
+    return _Candidates(
         cands.design, cands.centre[keep], cands.axes[keep], cands.angle[keep], cands.drift[keep]
     )
 
 
-def finish_candidates(
+def _finish(
     grey: NDArray[np.generic],
     full_scale: float,
-    cands: Candidates,
+    cands: _Candidates,
     reader: ReaderConfig,
-    subpixel: SubpixelMethod,
-    noise: float,
+    subpixel: SubpixelMethod = "profile",
+    noise: float | None = None,
 ) -> list[FiducialDetection]:
     """Read codes, fit every circle of the accepted candidates, read again, build results
-    (steps 3-4; ``noise``: the image's noise sd). Each candidate's result depends on the image
-    and itself alone, so any split of ``cands`` gives the same detections."""
+    (``noise``: the image's noise sd, estimated here when not given)."""
     if len(cands.centre) == 0:
         return []
     design = cands.design
@@ -405,6 +354,8 @@ def finish_candidates(
     first = read_codes(
         grey, full_scale, design, cands.centre, cands.axes, cands.angle, cands.drift, reader
     )
+    if noise is None:
+        noise = _noise_std(grey)
     reach = np.where(
         cands.axes[:, 1] < RETRY_THIN_MINOR_PX, RETRY_THIN_DISTANCE, RETRY_MAX_DISTANCE
     )
@@ -537,7 +488,7 @@ def _model_confirms(
 def _fit_circles(
     grey: NDArray[np.generic],
     noise: float,
-    cands: Candidates,
+    cands: _Candidates,
     idx: NDArray[np.intp],
     subpixel: SubpixelMethod,
 ) -> list[tuple[Ellipse, ...]]:
@@ -893,7 +844,7 @@ def _as_ellipse(p: NDArray[Any]) -> Ellipse:
     )
 
 
-def _scaled_seed(cands: Candidates, i: int, scale: float, dr2: float) -> Ellipse:
+def _scaled_seed(cands: _Candidates, i: int, scale: float, dr2: float) -> Ellipse:
     """The candidate's coarse pose ellipse scaled to a concentric circle, with centre drift."""
     c = cands.centre[i] + cands.drift[i] * dr2
     return _as_ellipse(np.r_[c, cands.axes[i] * scale, cands.angle[i]])

@@ -25,10 +25,8 @@ A frame that cannot be decoded (unknown encoding, wrong ``step``, zero size, cor
 detected is logged with the reason and dropped; the node lives on.
 
 Parameters (all read-only unless noted): see :data:`PARAMS` (``image_topic``, ``transport``,
-``detections_topic``, ``qos``, ``queue_depth``, ``design``, ``subpixel``, ``workers``,
-``diagnostics_period_s``). With ``workers`` > 1 each frame's fits are shared with worker
-processes (:mod:`fiducial_detector.parallel`), started with the first frame and stopped with
-the node; a worker that fails costs time, not the frame (``worker_failures`` in diagnostics).
+``detections_topic``, ``qos``, ``queue_depth``, ``design``, ``subpixel``,
+``diagnostics_period_s``).
 """
 
 from __future__ import annotations
@@ -90,13 +88,6 @@ PARAMS = (
         "about half the centre noise, several times slower).",
         choices=SUBPIXEL_METHODS,
     ),
-    Param(
-        "workers",
-        2,
-        "Processes sharing each frame's fits (this node's included; 1: none started). Two "
-        "halve the fit stage's latency on a two-core rig.",
-        minimum=1,
-    ),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics, s.", minimum=0.1),
 )
 
@@ -112,7 +103,6 @@ class DetectorNodeConfig:
     queue_depth: int
     design: str
     subpixel: str
-    workers: int
     diagnostics_period_s: float
 
     @property
@@ -131,10 +121,9 @@ class FiducialDetectorNode(Node):
         values = declare_parameters(self, PARAMS)
         self.config = DetectorNodeConfig(**values)
         cfg = self.config
-        # The core (imports OpenCV and friends); its workers start with the first frame.
-        from fiducial_detector.parallel import ParallelDetector
+        from fiducial_detector.detect import detect  # the core (imports OpenCV and friends)
 
-        self._detector = ParallelDetector(cfg.workers)
+        self._detect = detect
         if not cfg.image_topic or not cfg.detections_topic:
             raise GraphError("fiducial_detector: image_topic and detections_topic must be set")
         qos = stream_qos(cfg.qos, cfg.queue_depth)
@@ -158,7 +147,7 @@ class FiducialDetectorNode(Node):
         t0 = time.perf_counter()
         try:
             image = image_codec.decode(msg)
-            dets = self._detector.detect(
+            dets = self._detect(
                 image,
                 design=cast(DesignChoice, self.config.design),
                 subpixel=cast(SubpixelMethod, self.config.subpixel),
@@ -186,22 +175,16 @@ class FiducialDetectorNode(Node):
         publish_diagnostics(
             self,
             self._diag,
-            level="warn" if self.dropped or self._detector.failures else "ok",
-            message=self.last_error or self._detector.last_failure or "ok",
+            level="warn" if self.dropped else "ok",
+            message=self.last_error or "ok",
             hardware_id=self.config.input_topic,
             values={
                 "frames_received": str(self.received),
                 "frames_published": str(self.published),
                 "frames_dropped": str(self.dropped),
                 "last_frame_ms": f"{self.last_ms:.1f}",
-                "worker_failures": str(self._detector.failures),
             },
         )
-
-    def destroy_node(self) -> None:
-        """Stop the detector's worker processes with the node."""
-        self._detector.close()
-        super().destroy_node()
 
 
 NODE_CLASS = FiducialDetectorNode
