@@ -365,7 +365,12 @@ def _finish(
         # small boundaries give poor coarse ellipses, so fit the pose circle and read again.
         seeds0 = [_scaled_seed(cands, i, 1.0, 0.0) for i in retry.tolist()]
         refits = fit_ellipses(
-            grey, seeds0, r0, noise_std=noise, dark_inside=design.pose_circle.dark_inside
+            grey,
+            seeds0,
+            r0,
+            noise_std=noise,
+            dark_inside=design.pose_circle.dark_inside,
+            covariance=False,  # only read through
         )
         good = [
             (i, e)

@@ -450,6 +450,7 @@ def fit_ellipses(
     origin: tuple[int, int] = (0, 0),
     noise_std: float | None = None,
     dark_inside: bool | Sequence[bool | None] | None = None,
+    covariance: bool = True,
 ) -> list[Ellipse | None]:
     """Fit many ellipses in one image at once (batched :func:`fit_ellipse`).
 
@@ -484,6 +485,10 @@ def fit_ellipses(
         Polarity of each edge (True: dark inside the ellipse, as ``design.Circle.dark_inside``).
         Pixels of the other polarity are ignored. When omitted it is voted by the gradients
         nearest the seed; giving it makes thin annuli (two close edges) safe.
+    covariance : bool
+        Whether to compute the covariances (a third of the cost of a few fits); without, each
+        ellipse's covariance is NaN (for callers that need only the geometry, e.g. to read a
+        code again through it).
 
     Returns
     -------
@@ -577,11 +582,11 @@ def fit_ellipses(
     cov = np.full((n, 5, 5), np.nan)
     for k, st in enumerate(passes):
         mine = ok & (owner == k)
-        if np.any(mine):
+        if covariance and np.any(mine):
             cov[mine] = _covariances(st, sigma, mine)[mine]
     results: list[Ellipse | None] = []
     for j in range(n):
-        if not ok[j] or not np.all(np.isfinite(cov[j])):
+        if not ok[j] or (covariance and not np.all(np.isfinite(cov[j]))):
             results.append(None)
             continue
         u, v, a, b, ang = params[j]

@@ -209,6 +209,12 @@ def test_batched_fit_equals_single_fits_and_roi_origin() -> None:
         assert np.allclose(b.covariance, one.covariance, rtol=1e-6)
         assert np.allclose(roi.center_px, one.center_px, atol=1e-3)
         assert roi.semi_major == pytest.approx(one.semi_major, abs=1e-3)
+    # Without covariances: the same ellipses, covariance left NaN.
+    bare = fit_ellipses(scene.image, seeds, radii, dark_inside=polarity, covariance=False)
+    for b, g in zip(batch, bare, strict=True):
+        assert b is not None and g is not None
+        assert g.center_px == b.center_px and g.semi_minor == b.semi_minor
+        assert np.all(np.isnan(g.covariance))
 
 
 def test_seed_from_boundary_points() -> None:
