@@ -4,8 +4,10 @@ Each unit carries the same set of coded fiducials (the paper's section 5 set-up:
 the same four codes), glued at fixed positions and normals on the unit. Units lie on a 1:1.5 slope
 seen obliquely by the paper's camera (3008x2000, 7.8 um pixels, 45 mm lens). A wave run then moves
 some units (up to 2 Dn, mostly down-slope, with a rotation), overturns a few, and fiducials are
-hidden at random in each state (occlusion). Everything comes with exact ground truth: which
-fiducial is which, and each unit's rigid motion.
+hidden at random in each state. Everything comes with exact ground truth: which fiducial is which,
+each unit's rigid motion, and which fiducials the camera can observe: a rendered fiducial whose
+printed disc is even partly covered in the image by a nearer fiducial's patch (its white paper
+disc, painted over it by the renderer) is *occluded*, so not observable in that state.
 
 Frames: the camera frame of :mod:`pose_estimator` (x right, y down, z forward, mm). A unit's local
 frame has its origin at the unit's centre; the unit rotation maps local to camera coordinates.
@@ -21,8 +23,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
-from armourcam.render import Target
+from armourcam.render import MARGIN, Target
 from pose_estimator.camera import CameraModel
 from pose_estimator.types import FiducialPose
 
@@ -90,7 +93,13 @@ class FieldState:
     position_mm, normal : (M, 3) ndarray
         Fiducial centres and face normals, camera frame.
     visible : (M,) ndarray of bool
-        Facing the camera (slant below the limit) and not hidden.
+        Rendered: facing the camera (slant below the limit) and not randomly hidden.
+    occluded_fraction : (M,) ndarray of float
+        Fraction of the image area of the fiducial's printed disc covered by the paper discs of
+        nearer rendered fiducials (the sum over them, capped at 1: an upper bound of the union);
+        0 for fiducials that are not rendered.
+    diameter_mm : float
+        Printed (outer) diameter the occlusion was computed for; :meth:`targets` renders it.
     """
 
     rotations: NDArray[np.float64]
@@ -100,21 +109,47 @@ class FieldState:
     position_mm: NDArray[np.float64]
     normal: NDArray[np.float64]
     visible: NDArray[np.bool_]
+    occluded_fraction: NDArray[np.float64]
+    diameter_mm: float
 
     @property
     def visible_ids(self) -> NDArray[np.intp]:
-        """Fiducial ids (``u * K + k``) of the visible fiducials, in order."""
+        """Fiducial ids (``u * K + k``) of the rendered fiducials, in order."""
         return np.flatnonzero(self.visible)
 
-    def targets(self, design: str = "ring", diameter_mm: float = 7.1) -> list[Target]:
-        """Renderable targets of the visible fiducials (same order as :attr:`visible_ids`)."""
+    @property
+    def occluded(self) -> NDArray[np.bool_]:
+        """Rendered fiducials whose printed disc is partly covered by a nearer one's patch."""
+        return np.asarray(self.occluded_fraction > 0.0)
+
+    @property
+    def observable(self) -> NDArray[np.bool_]:
+        """Rendered and not occluded: what a perfect detector would see whole."""
+        return np.asarray(self.visible & ~self.occluded)
+
+    @property
+    def observable_ids(self) -> NDArray[np.intp]:
+        """Fiducial ids of the observable fiducials, in order."""
+        return np.flatnonzero(self.observable)
+
+    def targets(self, design: str = "ring", diameter_mm: float | None = None) -> list[Target]:
+        """Renderable targets of the visible fiducials (same order as :attr:`visible_ids`).
+
+        ``diameter_mm`` defaults to the state's :attr:`diameter_mm`; another value is refused,
+        since the occlusion truth holds only for the diameter it was computed for.
+        """
+        if diameter_mm is not None and not np.isclose(diameter_mm, self.diameter_mm):
+            raise ValueError(
+                f"the field's occlusion truth is for {self.diameter_mm} mm fiducials, "
+                f"not {diameter_mm} mm: pass diameter_mm={diameter_mm} to make_field"
+            )
         out = []
         for i in self.visible_ids.tolist():
             out.append(
                 Target(
                     int(self.code[i]),
                     design,
-                    diameter_mm,
+                    self.diameter_mm,
                     _face_rotation(self.normal[i], self.rotations[self.unit[i]]),
                     self.position_mm[i].copy(),
                 )
@@ -127,8 +162,12 @@ class FieldState:
         *,
         sigma_xy_mm: float = 0.1,
         sigma_z_mm: float = 1.0,
+        include_occluded: bool = False,
     ) -> list[FiducialPose]:
-        """Fiducial poses of the visible fiducials (order of :attr:`visible_ids`).
+        """Fiducial poses of the observable fiducials (order of :attr:`observable_ids`).
+
+        ``include_occluded`` gives every rendered fiducial instead (order of
+        :attr:`visible_ids`), as if occlusion did not exist.
 
         With ``rng`` the positions carry simulated monocular estimation noise: ``sigma_xy_mm``
         across the viewing ray and ``sigma_z_mm`` along it, the latter growing with the slant
@@ -136,7 +175,8 @@ class FieldState:
         Without ``rng`` the positions are exact (covariance still the model's).
         """
         out = []
-        for i in self.visible_ids.tolist():
+        ids = self.visible_ids if include_occluded else self.observable_ids
+        for i in ids.tolist():
             p = self.position_mm[i]
             ray = p / np.linalg.norm(p)
             cos_slant = float(np.clip(-ray @ self.normal[i], 0.25, 1.0))
@@ -203,12 +243,80 @@ def _rot(axis: NDArray[np.float64], angle: float) -> NDArray[np.float64]:
     return np.asarray(r, dtype=np.float64)
 
 
+def _disc_outlines(
+    camera: CameraModel,
+    position: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    radius_mm: float,
+    n: int = 48,
+) -> NDArray[np.float64]:
+    """Image outlines (with distortion) of discs of ``radius_mm``: (M, n, 2) pixels, (u, v).
+
+    The inscribed ``n``-gon of each disc's rim, projected point by point: under a pinhole a disc
+    images as an ellipse, and the polygon falls short of it by ``1 - cos(pi / n)`` of its radius
+    (0.2 % at n = 48, a few hundredths of a pixel here).
+    """
+    ref = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    a = np.cross(normal, ref)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = np.cross(normal, a)
+    ang = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    rim = position[:, None, :] + radius_mm * (
+        np.cos(ang)[None, :, None] * a[:, None, :] + np.sin(ang)[None, :, None] * b[:, None, :]
+    )
+    uv = camera.project(rim.reshape(-1, 3))
+    return np.asarray(uv, dtype=np.float64).reshape(len(position), n, 2)
+
+
+def _occlusion(
+    camera: CameraModel,
+    position: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    visible: NDArray[np.bool_],
+    diameter_mm: float,
+) -> NDArray[np.float64]:
+    """Fraction of each rendered fiducial's printed disc covered by nearer fiducials' paper.
+
+    Follows the renderer's rule (:func:`armourcam.render.render`): patches are painted farthest
+    centre first (a stable sort, so of equal depths the later in id order is on top), each one a
+    paper disc of ``MARGIN`` outer radii. Fiducial ``i`` loses the part of its printed disc
+    (outer radius) that lies under the paper of every fiducial painted after it; the fraction is
+    the sum over those (capped at 1). Areas come from the exact intersection of the two convex
+    image outlines.
+    """
+    out = np.zeros(len(position))
+    ids = np.flatnonzero(visible)
+    if len(ids) < 2:
+        return out
+    r = 0.5 * diameter_mm
+    printed = _disc_outlines(camera, position[ids], normal[ids], r)
+    paper = _disc_outlines(camera, position[ids], normal[ids], MARGIN * r)
+    centre = paper.mean(axis=1)
+    reach = np.max(np.linalg.norm(paper - centre[:, None, :], axis=2), axis=1)
+    # Painting order of the renderer: farthest first, ties in list (id) order.
+    order = np.argsort(-position[ids, 2], kind="stable")
+    rank = np.empty(len(ids), dtype=np.intp)
+    rank[order] = np.arange(len(ids))
+    tree = cKDTree(centre)
+    for a, b in sorted(tree.query_pairs(2.0 * float(reach.max()))):
+        if np.linalg.norm(centre[a] - centre[b]) > reach[a] + reach[b]:
+            continue
+        under, over = (a, b) if rank[a] < rank[b] else (b, a)
+        poly = printed[under].astype(np.float32)
+        area, _ = cv2.intersectConvexConvex(poly, paper[over].astype(np.float32))
+        if area > 0.0:
+            out[ids[under]] += area / cv2.contourArea(poly)
+    return np.minimum(out, 1.0)
+
+
 def _state(
     geometry: UnitGeometry,
+    camera: CameraModel,
     rotations: NDArray[np.float64],
     centres: NDArray[np.float64],
     hidden: NDArray[np.bool_],
     max_slant_deg: float,
+    diameter_mm: float,
 ) -> FieldState:
     n, k = len(centres), len(geometry.codes)
     pos = np.einsum("uij,kj->uki", rotations, geometry.positions_mm) + centres[:, None, :]
@@ -216,6 +324,7 @@ def _state(
     pos, nrm = pos.reshape(-1, 3), nrm.reshape(-1, 3)
     towards = -pos / np.linalg.norm(pos, axis=1, keepdims=True)
     facing = np.einsum("ki,ki->k", towards, nrm) > np.cos(np.radians(max_slant_deg))
+    visible = facing & ~hidden
     return FieldState(
         rotations,
         centres,
@@ -223,8 +332,47 @@ def _state(
         np.tile(np.asarray(geometry.codes, dtype=np.int64), n),
         pos,
         nrm,
-        facing & ~hidden,
+        visible,
+        _occlusion(camera, pos, nrm, visible, diameter_mm),
+        float(diameter_mm),
     )
+
+
+def _settle(
+    geometry: UnitGeometry,
+    rotations: NDArray[np.float64],
+    centres: NDArray[np.float64],
+    movers: NDArray[np.intp],
+    up: NDArray[np.float64],
+    min_gap_mm: float,
+) -> None:
+    """Lift moved units that landed inside others out along the slope normal, in place.
+
+    Two units cannot share space: a unit thrown onto another comes to rest on top of it. A
+    moved unit is clear when its centre is at least Dn from every other unit's centre (their
+    cores do not overlap) and its fiducials keep the baseline's ``min_gap_mm`` from other units'
+    fiducials; until then it rises by 0.1 Dn steps along ``up`` (towards the camera side of the
+    slope). Units are settled in id order, each against all others as they then lie, so every
+    pair ends clear. Deterministic: the random draws of the field stay the same.
+    """
+    dn = geometry.dn_mm
+    step = 0.1 * dn
+    for u in movers.tolist():
+        others = np.arange(len(centres)) != u
+        for _ in range(60):
+            near = others & (np.linalg.norm(centres - centres[u], axis=1) < 2.5 * dn)
+            if not near.any():
+                break
+            fid = centres[u] + geometry.positions_mm @ rotations[u].T
+            theirs = (
+                np.einsum("uij,kj->uki", rotations[near], geometry.positions_mm)
+                + centres[near][:, None, :]
+            ).reshape(-1, 3)
+            gap = float(np.min(np.linalg.norm(theirs[:, None] - fid[None], axis=2)))
+            core = float(np.min(np.linalg.norm(centres[near] - centres[u], axis=1)))
+            if gap >= min_gap_mm and core >= dn:
+                break
+            centres[u] = centres[u] + step * up
 
 
 def make_field(
@@ -242,6 +390,8 @@ def make_field(
     view_deg: float = 35.0,
     max_slant_deg: float = 75.0,
     min_gap_mm: float = 9.0,
+    diameter_mm: float = 7.1,
+    settle: bool = True,
 ) -> Field:
     """A dolos field on a slope, before and after a simulated wave run.
 
@@ -258,7 +408,8 @@ def make_field(
         that it fills about 90 % of the image width.
     moved_fraction : float
         Fraction of units moved: translated ``U(0.1, max_move_dn) * Dn`` within +-60 deg of
-        down-slope, and turned up to 30 deg about a random axis.
+        down-slope, and turned up to 30 deg about a random axis. A unit that would land inside
+        another rests on top of it instead (lifted along the slope normal until clear).
     overturned_fraction : float
         Fraction of units overturned (turned 180 deg about the shank) and shifted
         ``U(0.2, 1.5) Dn``.
@@ -275,6 +426,12 @@ def make_field(
         A fiducial is visible when its normal is within this angle of the direction to the camera.
     min_gap_mm : float
         Smallest distance between fiducials of different units in the baseline.
+    diameter_mm : float
+        Printed outer diameter of the fiducials: with the camera it sets which fiducials occlude
+        which in the image (:attr:`FieldState.occluded_fraction`), so render at this diameter.
+    settle : bool
+        Lift moved units that landed inside others until clear (see ``moved_fraction``); False
+        keeps the raw draws, interpenetrating units included (older fields, recorded bags).
 
     Returns
     -------
@@ -289,6 +446,8 @@ def make_field(
     ):
         if not 0.0 <= frac <= 1.0:
             raise ValueError(f"{name} must be in [0, 1], got {frac}")
+    if not diameter_mm > 0.0:
+        raise ValueError(f"diameter_mm must be > 0, got {diameter_mm}")
     if moved_fraction + overturned_fraction > 1.0:
         raise ValueError("moved_fraction + overturned_fraction exceeds 1")
     del slope  # the geometry below depends only on the viewing angle
@@ -343,7 +502,7 @@ def make_field(
 
     n_fid = n_units * len(geo.codes)
     hidden_b = rng.random(n_fid) < hidden_fraction
-    before = _state(geo, rots, cents, hidden_b, max_slant_deg)
+    before = _state(geo, cam, rots, cents, hidden_b, max_slant_deg, diameter_mm)
 
     order = rng.permutation(n_units)
     n_over = round(overturned_fraction * n_units)
@@ -365,6 +524,8 @@ def make_field(
             turn = _rot(rng.normal(size=3), np.radians(rng.uniform(0, 30)))
         rots_a[u] = turn @ rots[u]
         cents_a[u] = cents[u] + dist * direction + rng.uniform(-0.1, 0.1) * dn * n_s
+    if settle:
+        _settle(geo, rots_a, cents_a, np.flatnonzero(moved | overturned), n_s, min_gap_mm)
     hidden_a = rng.random(n_fid) < hidden_fraction
-    after = _state(geo, rots_a, cents_a, hidden_a, max_slant_deg)
+    after = _state(geo, cam, rots_a, cents_a, hidden_a, max_slant_deg, diameter_mm)
     return Field(geo, cam, before, after, moved, overturned, float(width))

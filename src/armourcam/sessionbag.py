@@ -228,6 +228,10 @@ def write_session_bag(path: Path, spec: SessionSpec | None = None) -> dict[str, 
         moved_fraction=spec.moved_fraction,
         overturned_fraction=spec.overturned_fraction,
         hidden_fraction=spec.hidden_fraction,
+        diameter_mm=spec.diameter_mm,
+        # Unsettled (moved units may interpenetrate still ones): keeps the committed bags and
+        # their truth reproducible.
+        settle=False,
     )
     rng = np.random.default_rng(spec.seed + 1000)
     still_before = field.before.targets(spec.design, spec.diameter_mm)

@@ -23,10 +23,17 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> tuple[Field, Path]:
     """A 16-dolos field rendered before and after, with its camera and unit-map files."""
     d = tmp_path_factory.mktemp("compare")
     cam = CameraModel.ideal(1200, 800, 2400.0)
-    f = make_field(16, seed=3, camera=cam, moved_fraction=0.25, overturned_fraction=0.07)
+    f = make_field(
+        16,
+        seed=3,
+        camera=cam,
+        moved_fraction=0.25,
+        overturned_fraction=0.07,
+        diameter_mm=DIAMETER_MM,
+    )
     for k, (name, state) in enumerate((("before", f.before), ("after", f.after))):
         rng = np.random.default_rng(10 + k)
-        img = render(cam, state.targets("ring", DIAMETER_MM), blur_sigma=0.5, noise=0.01, rng=rng)
+        img = render(cam, state.targets("ring"), blur_sigma=0.5, noise=0.01, rng=rng)
         cv2.imwrite(str(d / f"{name}.png"), img.image)
     (d / "camera.yaml").write_text(yaml.safe_dump(cam.to_dict()))
     g = f.geometry
