@@ -148,18 +148,24 @@ def circle_params(center: ArrayLike, normal: ArrayLike, radius: ArrayLike) -> F6
     Returns
     -------
     (..., 5) ndarray
-        ``(u, v, s11, s12, s22)`` in normalised image coordinates.
+        ``(u, v, s11, s12, s22)`` in normalised image coordinates; NaN rows where the image is
+        no real ellipse (the circle reaches the camera's plane ``z = 0``).
 
     Notes
     -----
-    With ``g = n . c``, the cone through the circle is
-    ``C = g^2 I - g (c n^T + n c^T) + (|c|^2 - r^2) n n^T``: for ``x = c + r m`` (``m`` a unit
-    vector in the plane) ``x^T C x = 0``. Basis-free, so it is cheap and smooth in ``n``.
+    The circle is the conic ``diag(1, 1, -r^2)`` of its plane, mapped by ``H = [e1 e2 c]``
+    (``e1, e2`` an orthonormal basis of the plane); its image's *dual* conic is
+    ``H diag(r^2, r^2, -1) H^T = r^2 (I - n n^T) - c c^T``: basis-free and linear in ``r^2``.
+    The dual conic of the ellipse ``{m + S w : |w| = 1}`` is ``[[S^2 - m m^T, -m], [-m^T, -1]]``
+    up to scale, so with ``q = c_z^2 - r^2 (1 - n_z^2)`` the centre is
+    ``m = (c_xy c_z + r^2 n_xy n_z) / q`` and
+    ``S^2 = (r^2 (I - n_xy n_xy^T) - c_xy c_xy^T) / q + m m^T``, whose square root is closed
+    form. No cone is inverted, so no digits are lost to the cone's condition (``(z / r)^2``).
     """
-    c = np.asarray(center, dtype=np.float64)
-    n = np.asarray(normal, dtype=np.float64)
+    c = np.moveaxis(np.asarray(center, dtype=np.float64), -1, 0)
+    n = np.moveaxis(np.asarray(normal, dtype=np.float64), -1, 0)
     r = np.asarray(radius, dtype=np.float64)
-    return params_from_entries(*_circle_cone(np.moveaxis(c, -1, 0), np.moveaxis(n, -1, 0), r))
+    return np.moveaxis(circle_params_t(c, n, r), 0, -1)
 
 
 def circle_params_t(center: F64, normal: F64, radius: F64) -> F64:
@@ -167,26 +173,145 @@ def circle_params_t(center: F64, normal: F64, radius: F64) -> F64:
 
     ``center``, ``normal`` ``(3, ...)`` and ``radius`` ``(...)`` give ``(5, ...)``.
     """
-    return params_from_entries_t(*_circle_cone(center, normal, radius))
+    comps, _, bad = _circle_image(center, normal, radius * radius)
+    out = np.empty((5, *np.shape(comps[0])))
+    out[0], out[1], out[2], out[3], out[4] = comps
+    if bad.any():
+        out[:, bad] = np.nan
+    return out
 
 
-def _circle_cone(c: F64, n: F64, r: F64) -> tuple[F64, F64, F64, F64, F64, F64]:
-    """Entries of the cone through circles (centres and normals ``(3, ...)``, see circle_params)."""
-    c0, c1, c2 = c[0], c[1], c[2]
-    n0, n1, n2 = n[0], n[1], n[2]
-    g = c0 * n0 + c1 * n1 + c2 * n2
-    cc = c0 * c0 + c1 * c1 + c2 * c2
-    g2 = g * g
-    r2 = r * r
-    # Entry (i, j) = P_ij - r^2 n_i n_j with P computed once per centre (radius-free part).
-    return (
-        (g2 - 2.0 * g * c0 * n0 + cc * n0 * n0) - r2 * (n0 * n0),
-        (-g * (c0 * n1 + n0 * c1) + cc * n0 * n1) - r2 * (n0 * n1),
-        (g2 - 2.0 * g * c1 * n1 + cc * n1 * n1) - r2 * (n1 * n1),
-        (-g * (c0 * n2 + n0 * c2) + cc * n0 * n2) - r2 * (n0 * n2),
-        (-g * (c1 * n2 + n1 * c2) + cc * n1 * n2) - r2 * (n1 * n2),
-        (g2 - 2.0 * g * c2 * n2 + cc * n2 * n2) - r2 * (n2 * n2),
-    )
+def _circle_image(
+    c: F64, n: F64, r2: F64
+) -> tuple[tuple[F64, F64, F64, F64, F64], tuple[F64, F64, F64, F64], NDArray[np.bool_]]:
+    """Image ellipses of circles (see :func:`circle_params`), elementwise over ``r2 = r^2``.
+
+    Returns the components ``(u, v, s11, s12, s22)``, the intermediates ``(1 / q, m11, m12,
+    m22)`` (``M = S^2``) and where the image is no real ellipse.
+    """
+    cx, cy, cz = c[0], c[1], c[2]
+    nx, ny, nz = n[0], n[1], n[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rz = r2 * nz
+        inv_q = 1.0 / (cz * cz - r2 * (1.0 - nz * nz))
+        u = (cx * cz + rz * nx) * inv_q
+        v = (cy * cz + rz * ny) * inv_q
+        m11 = (r2 * (1.0 - nx * nx) - cx * cx) * inv_q + u * u
+        m12 = u * v - (r2 * (nx * ny) + cx * cy) * inv_q
+        m22 = (r2 * (1.0 - ny * ny) - cy * cy) * inv_q + v * v
+        detm = m11 * m22 - m12 * m12
+        root = np.sqrt(detm)
+        inv_t = 1.0 / np.sqrt(m11 + m22 + 2.0 * root)
+        comps = (u, v, (m11 + root) * inv_t, m12 * inv_t, (m22 + root) * inv_t)
+        bad = ~((inv_q > 0) & (m11 > 0) & (detm > 0) & np.isfinite(u + v + inv_t))
+    return comps, (inv_q, m11, m12, m22), bad
+
+
+def circle_params_jacobian_t(
+    center: F64, normal: F64, radius: F64, e1: F64, e2: F64, *, scale: bool = False
+) -> tuple[F64, F64]:
+    """:func:`circle_params_t` and its analytic Jacobian, components first.
+
+    Parameters
+    ----------
+    center, normal : (3, N) ndarray
+        Circle centres and unit normals (camera frame), one per fiducial.
+    radius : (K, N) ndarray
+        Radii of the fiducial's ``K`` concentric circles.
+    e1, e2 : (3, N) ndarray
+        Unit vectors orthogonal to ``normal`` (and to each other): the normal's two tilt
+        directions.
+    scale : bool
+        Add a sixth column, the derivative with respect to ``log r`` of each circle.
+
+    Returns
+    -------
+    params : (5, K, N) ndarray
+        ``(u, v, s11, s12, s22)`` of each circle's image, normalised coordinates; NaN where
+        the image is no real ellipse.
+    jacobian : (5, M, K, N) ndarray
+        Derivatives with respect to the centre's ``x, y, z`` and to the rotation of the normal
+        towards ``e1`` and ``e2`` (``d n = e1 d a``), then ``log r`` if ``scale`` (``M`` = 5 or
+        6); NaN where ``params`` is.
+
+    Notes
+    -----
+    Forward-mode differentiation of :func:`circle_params`. With ``a = c_xy c_z + r^2 n_xy n_z``,
+    ``q = c_z^2 - r^2 (1 - n_z^2)`` and ``B = r^2 (I - n_xy n_xy^T) - c_xy c_xy^T`` the centre is
+    ``m = a / q`` and ``M = S^2 = B / q + m m^T``, so along any direction
+    ``dm = (da - m dq) / q`` and ``dM = (dB - dq (M - m m^T)) / q + dm m^T + m dm^T``; ``dS``
+    follows from the closed-form square root (:func:`sqrtm_diff`). Per direction:
+
+    - centre ``x`` (``y`` alike): ``da = (c_z, 0)``, ``dq = 0``, ``dB = -(e_x c^T + c e_x^T)``;
+    - centre ``z``: ``da = c_xy``, ``dq = 2 c_z``, ``dB = 0``;
+    - tilt ``dn = e``: ``da = r^2 (e_xy n_z + n_xy e_z)``, ``dq = 2 r^2 n_z e_z``,
+      ``dB = -r^2 (e n^T + n e^T)``;
+    - ``log r``: ``da = 2 r^2 n_xy n_z``, ``dq = -2 r^2 (1 - n_z^2)``,
+      ``dB = 2 r^2 (I - n n^T)``.
+    """
+    c, n = center, normal
+    r2 = radius * radius
+    (u, v, s11, s12, s22), (inv_q, m11, m12, m22), bad = _circle_image(c, n, r2)
+    cx, cy, cz = c[0], c[1], c[2]
+    nx, ny, nz = n[0], n[1], n[2]
+    m = 6 if scale else 5
+    shape = (m, *r2.shape)
+    # Changes of a (2 components), q and B (3 entries) along each direction.
+    dax, day, dq = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+    db11, db12, db22 = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+    dax[0], db11[0], db12[0] = cz, -2.0 * cx, -cy
+    day[1], db12[1], db22[1] = cz, -cx, -2.0 * cy
+    dax[2], day[2], dq[2] = cx, cy, 2.0 * cz
+    for col, e in ((3, e1), (4, e2)):
+        ex, ey, ez = e[0], e[1], e[2]
+        dax[col] = r2 * (ex * nz + nx * ez)
+        day[col] = r2 * (ey * nz + ny * ez)
+        dq[col] = r2 * (2.0 * nz * ez)
+        db11[col] = r2 * (-2.0 * ex * nx)
+        db12[col] = r2 * -(ex * ny + nx * ey)
+        db22[col] = r2 * (-2.0 * ey * ny)
+    if scale:
+        r2x2 = 2.0 * r2
+        dax[5], day[5] = r2x2 * (nx * nz), r2x2 * (ny * nz)
+        dq[5] = r2x2 * (nz * nz - 1.0)
+        db11[5], db22[5] = r2x2 * (1.0 - nx * nx), r2x2 * (1.0 - ny * ny)
+        db12[5] = r2x2 * -(nx * ny)
+    jac = np.empty((5, *shape))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        du = np.multiply(dax - u * dq, inv_q, out=jac[0])
+        dv = np.multiply(day - v * dq, inv_q, out=jac[1])
+        # B / q = M - m m^T.
+        dm11 = (db11 - dq * (m11 - u * u)) * inv_q + 2.0 * du * u
+        dm12 = (db12 - dq * (m12 - u * v)) * inv_q + du * v + u * dv
+        dm22 = (db22 - dq * (m22 - v * v)) * inv_q + 2.0 * dv * v
+        jac[2:] = sqrtm_diff(m11, m12, m22, s11, s12, s22, dm11, dm12, dm22)
+    params = np.empty((5, *r2.shape))
+    params[0], params[1], params[2], params[3], params[4] = u, v, s11, s12, s22
+    if bad.any():
+        params[:, bad] = np.nan
+        jac[:, :, bad] = np.nan
+    return params, jac
+
+
+def sqrtm_diff(
+    m11: F64, m12: F64, m22: F64, s11: F64, s12: F64, s22: F64, dm11: F64, dm12: F64, dm22: F64
+) -> F64:
+    """Change ``(3, ...)`` ``(ds11, ds12, ds22)`` of the symmetric square roots ``S`` of 2x2
+    SPD matrices ``M`` along ``dM`` (entries elementwise).
+
+    ``S = (M + sqrt(det M) I) / t`` with ``t = sqrt(tr M + 2 sqrt(det M))`` (``t = tr S``,
+    ``sqrt(det M) = det S``), differentiated as written.
+    """
+    root = s11 * s22 - s12 * s12
+    inv_t = 1.0 / (s11 + s22)
+    droot = (dm11 * m22 + m11 * dm22 - 2.0 * m12 * dm12) * (0.5 / root)
+    dt = (dm11 + dm22 + 2.0 * droot) * (0.5 * inv_t)
+    ds11 = dm11 + droot - s11 * dt
+    out = np.empty((3, *np.shape(ds11)))
+    np.multiply(ds11, inv_t, out=out[0])
+    np.multiply(dm12 - s12 * dt, inv_t, out=out[1])
+    np.multiply(dm22 + droot - s22 * dt, inv_t, out=out[2])
+    return out
 
 
 def params_from_axes(

@@ -45,11 +45,13 @@ from fiducial_detector.types import FiducialDetection
 from .batched import spd_inverse
 from .camera import CameraModel
 from .conic_pose import (
+    circle_params_jacobian_t,
     circle_params_t,
     circle_pose_t,
     fit_ellipse_params_t,
     params_from_axes,
     plane_basis,
+    sqrtm_diff,
 )
 from .errors import PoseError
 from .types import FiducialPose
@@ -523,21 +525,29 @@ def _affine_params_jacobian(p: F64, A: F64) -> F64:
     """Jacobian of :func:`_affine_params` w.r.t. ``p``, shape ``(5, 5, ...)``.
 
     Block diagonal: the centre maps linearly (its block is ``A`` itself) and the shape does not
-    depend on the centre; only the shape block is differentiated numerically (central
-    differences).
+    depend on the centre. The shape block is analytic: ``M = (A S)(A S)^T`` changes along
+    ``dS`` by ``dX X^T + X dX^T`` with ``X = A S``, ``dX = A dS``, and the new square root
+    follows through :func:`pose_estimator.conic_pose.sqrtm_diff`.
     """
     J = np.zeros((5, 5, *np.broadcast_shapes(p.shape[1:], A.shape[2:])))
     J[:2, :2] = A
-    s = [p[2], p[3], p[4]]
-    for j in range(3):
-        base = s[j]
-        s[j] = base + 1e-4
-        plus = _affine_shape(s[0], s[1], s[2], A)
-        s[j] = base - 1e-4
-        minus = _affine_shape(s[0], s[1], s[2], A)
-        s[j] = base
-        for i in range(3):
-            J[2 + i, 2 + j] = (plus[i] - minus[i]) / 2e-4
+    s11, s12, s22 = p[2], p[3], p[4]
+    a00, a01, a10, a11 = A[0, 0], A[0, 1], A[1, 0], A[1, 1]
+    x11, x12 = a00 * s11 + a01 * s12, a00 * s12 + a01 * s22
+    x21, x22 = a10 * s11 + a11 * s12, a10 * s12 + a11 * s22
+    m11 = x11 * x11 + x12 * x12
+    m12 = x11 * x21 + x12 * x22
+    m22 = x21 * x21 + x22 * x22
+    new = _affine_shape(s11, s12, s22, A)
+    zero = np.zeros_like(a00)
+    # dX = A dS for dS = [[1, 0], [0, 0]], [[0, 1], [1, 0]] and [[0, 0], [0, 1]].
+    for j, (d11, d12, d21, d22) in enumerate(
+        ((a00, zero, a10, zero), (a01, a00, a11, a10), (zero, a01, zero, a11))
+    ):
+        dm11 = 2.0 * (d11 * x11 + d12 * x12)
+        dm12 = d11 * x21 + d12 * x22 + x11 * d21 + x12 * d22
+        dm22 = 2.0 * (d21 * x21 + d22 * x22)
+        J[2:, 2 + j] = sqrtm_diff(m11, m12, m22, *new, dm11, dm12, dm22)
     return J
 
 
@@ -609,29 +619,16 @@ def _gauss_newton(
     all_plain = bool(plain.all())
     for _ in range(iterations):
         e1, e2 = (np.stack(e) for e in plane_basis((n[0], n[1], n[2])))
-        # The base pose and perturbed ones (forward differences: steps far below the noise, far
-        # above round-off), evaluated in one vectorised call; the last one scales circles 1..K-1.
-        h = 1e-6 * c[2]
-        da = 1e-6
-        m = 7 if extra else 6
-        cs = np.repeat(c[:, None], m, axis=1)  # (3, m, N)
-        ns = np.repeat(n[:, None], m, axis=1)
-        rs = np.repeat(rad[None], m, axis=0)  # (m, K, N)
-        for j in range(3):
-            cs[j, 1 + j] += h
-        ns[:, 4] += da * e1
-        ns[:, 5] += da * e2
-        ns[:, 4:6] /= np.sqrt(ns[0, 4:6] ** 2 + ns[1, 4:6] ** 2 + ns[2, 4:6] ** 2)
-        if extra:
-            rs[6, 1:] *= 1.0 + da
-        pred = circle_params_t(cs[:, :, None], ns[:, :, None], rs)  # (5, m, K, N)
-        base = pred[:, 0]
-        J = np.empty((5, 5, *base.shape[1:]))  # (5, 5, K, N): centre and normal columns
-        J[:, :3] = (pred[:, 1:4] - base[:, None]) / h
-        J[:, 3:5] = (pred[:, 4:6] - base[:, None]) / da
+        # Predicted ellipses and their analytic Jacobian (exact to rounding; the forward
+        # differences used before were good to ~1e-3 in the covariance at worst).
+        base, jac = circle_params_jacobian_t(c, n, rad, e1, e2, scale=extra)  # (5, m, K, N)
+        J = jac[:, :5]  # centre and normal columns
         res = obs - base
-        # Each circle's own scale column (zero for the pose circle, whose radius is known).
-        ds = (pred[:, 6] - base) / da if extra else None  # (5, K, N)
+        # Each circle's own scale column (none for the pose circle, whose radius is known).
+        ds = None
+        if extra:
+            ds = jac[:, 5]  # (5, K, N)
+            ds[:, 0] = 0.0
         check = res.sum() + J.sum() + (0.0 if ds is None else ds.sum())
         if not np.isfinite(check):  # degenerate predictions contribute nothing
             J = np.where(np.isfinite(J), J, 0.0)
@@ -644,10 +641,11 @@ def _gauss_newton(
             with np.errstate(divide="ignore"):
                 inv_alpha = np.where(alpha > 0, 1.0 / alpha, 0.0)
             P = W - Wd[:, None] * (Wd * inv_alpha)[None]
-        PJ = np.einsum("ijkn,jqkn->iqkn", P * lam, J)  # lam_k P J
+        lam_p = P * lam
+        PJ = np.einsum("ijkn,jqkn->iqkn", lam_p, J)  # lam_k P J
         info = np.einsum("ipkn,iqkn->pqn", J, PJ)  # (5, 5, N), sum over circles
         grad = np.einsum("ipkn,ikn->pn", PJ, res)  # (5, N)
-        chi2_lin = _quadratic(res, P * lam)
+        chi2_lin = _quadratic(res, lam_p)
         # A tiny damping only guards against singular steps (e.g. a missing inner circle).
         damp = 1e-12 * info.trace() + 1e-300
         for i in range(5):

@@ -11,6 +11,8 @@ from pose_estimator.conic_pose import (
     axes_from_params,
     axes_to_params_jacobian,
     circle_params,
+    circle_params_jacobian_t,
+    circle_params_t,
     circle_pose,
     conic_from_params,
     ellipse_points,
@@ -19,6 +21,7 @@ from pose_estimator.conic_pose import (
     fit_ellipse_params_t,
     params_from_axes,
     params_from_conic,
+    plane_basis,
 )
 
 CAMERA = CameraModel.ideal(3008, 2000, 5769.0)
@@ -167,6 +170,69 @@ def test_circle_params_matches_homography_conic() -> None:
         # Normalised -> pixels (fx = fy).
         got = np.concatenate([p[:2] * 5769.0 + CAMERA.K[:2, 2], p[2:] * 5769.0])
         np.testing.assert_allclose(got, expect, rtol=0, atol=1e-8)
+
+
+def _random_circles(count: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centres and normals ``(3, N)`` over a wide field (300-1500 mm, slant 0-89 deg, facing the
+    camera) and the ring design's radii ``(3, N)``."""
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(300.0, 1500.0, count)
+    c = np.stack([rng.uniform(-0.3, 0.3, count) * z, rng.uniform(-0.2, 0.2, count) * z, z])
+    n = np.empty((3, count))
+    for i in range(count):
+        R = rotation_from_slant_tilt(np.radians(rng.uniform(0.0, 89.0)), rng.uniform(0, 2 * np.pi))
+        n[:, i] = -R[:, 2] * np.sign(R[2, 2])
+    r = np.array([3.55, 2.84, 0.85])[:, None] * np.ones(count)
+    return c, n, r
+
+
+def test_circle_params_fit_projected_circle_points() -> None:
+    """Each image ellipse passes through the projections of its circle's points, also for small,
+    far, steeply slanted circles off the axis (where inverting the cone lost up to 8 % of the
+    shape)."""
+    c, n, r = _random_circles(400, 1)
+    p = circle_params_t(c[:, None], n[:, None], r)  # (5, K, N)
+    e1, e2 = (np.stack(e) for e in plane_basis((n[0], n[1], n[2])))
+    t = np.linspace(0.0, 2.0 * np.pi, 36, endpoint=False)[:, None, None]  # (T, 1, 1)
+    ring = e1[:, None, None] * np.cos(t) + e2[:, None, None] * np.sin(t)  # (3, T, 1, N)
+    pts = c[:, None, None] + r * ring  # (3, T, K, N)
+    x, y = pts[0] / pts[2], pts[1] / pts[2]  # (36, K, N)
+    # w = S^-1 (x - m) must be a unit vector.
+    det = p[2] * p[4] - p[3] ** 2
+    dx, dy = x - p[0], y - p[1]
+    wx, wy = (p[4] * dx - p[3] * dy) / det, (p[2] * dy - p[3] * dx) / det
+    # (To rounding amplified by S^-1, up to ~1e-7 for 89 deg views' slivers.)
+    np.testing.assert_allclose(np.hypot(wx, wy), 1.0, rtol=0, atol=1e-6)
+
+
+def test_circle_params_jacobian_equals_central_differences() -> None:
+    """The analytic Jacobian of the image ellipses in the centre, the normal's two tilts and
+    the log radius equals central differences of :func:`circle_params_t`."""
+    c, n, r = _random_circles(200, 2)
+    e1, e2 = (np.stack(e) for e in plane_basis((n[0], n[1], n[2])))
+    params, jac = circle_params_jacobian_t(c, n, r, e1, e2, scale=True)
+    assert jac.shape == (5, 6, 3, 200)
+    np.testing.assert_array_equal(params, circle_params_t(c[:, None], n[:, None], r))
+    assert np.isfinite(jac).all()
+
+    def pred(cc: np.ndarray, nn: np.ndarray, rr: np.ndarray) -> np.ndarray:
+        return circle_params_t(cc[:, None], nn[:, None], rr)
+
+    h, da = 1e-3 * c[2], 1e-3
+    num = []
+    for k in range(3):
+        dc = np.zeros_like(c)
+        dc[k] = h
+        num.append((pred(c + dc, n, r) - pred(c - dc, n, r)) / (2.0 * h))
+    for e in (e1, e2):  # exact rotations of the normal by +-da towards e
+        plus = pred(c, n * np.cos(da) + e * np.sin(da), r)
+        num.append((plus - pred(c, n * np.cos(da) - e * np.sin(da), r)) / (2.0 * da))
+    num.append((pred(c, n, r * np.exp(da)) - pred(c, n, r * np.exp(-da))) / (2.0 * da))
+    want = np.stack(num, axis=1)
+    # Truncation (h^2) and rounding of the differences: up to ~3e-6 of each column's size for
+    # the slivers of 89 deg views (smaller steps only trade truncation for rounding there).
+    scale = np.abs(want).max(axis=0, keepdims=True)
+    assert np.all(np.abs(jac - want) <= 1e-5 * scale)
 
 
 @pytest.mark.parametrize("angle", np.linspace(0.0, np.pi, 7, endpoint=False))

@@ -288,7 +288,7 @@ def test_batch_equals_per_fiducial_reference(lens: bool) -> None:
         (alone,) = estimate([det], cam, 7.1)
         assert pose.detection is det and pose.code == alone.code
         # To rounding: the lens correction iterates until every point of the batch converged,
-        # and the covariance's forward-difference Jacobian turns a last-bit change of its input
+        # and the inverse of the refinement's information amplifies a last-bit change of its input
         # into ~1e-10 of itself, which the inverse amplifies by its condition (~1e5).
         np.testing.assert_allclose(pose.position_mm, alone.position_mm, rtol=0, atol=1e-7)
         np.testing.assert_allclose(pose.normal, alone.normal, rtol=0, atol=1e-9)
@@ -337,7 +337,9 @@ def test_profiled_scales_equal_the_full_gauss_newton(free_scale: bool) -> None:
     for i in range(n_fid):
         c0, n0 = start_c[i], start_n[i]
         e1, e2 = (np.array(e) for e in plane_basis(tuple(n0)))
-        h, da = 1e-6 * c0[2], 1e-6
+        # Central differences (the refinement's Jacobian is analytic): rotations of the normal
+        # by +-da towards e1 and e2, radii scaled by exp(+-da).
+        h, da = 1e-4 * c0[2], 1e-4
         npar = 5 + (2 if free_scale else 0)
         A, B, g, chi2_lin = np.zeros((npar, npar)), np.zeros((npar, npar)), np.zeros(npar), 0.0
         for k in range(3):
@@ -346,13 +348,17 @@ def test_profiled_scales_equal_the_full_gauss_newton(free_scale: bool) -> None:
             for j in range(3):
                 dc = np.zeros(3)
                 dc[j] = h
-                J[:, j] = (circle_params(c0 + dc, n0, radii[k]) - base) / h
+                J[:, j] = (
+                    circle_params(c0 + dc, n0, radii[k]) - circle_params(c0 - dc, n0, radii[k])
+                ) / (2 * h)
             for j, e in enumerate((e1, e2)):
-                nn = n0 + da * e
-                nn /= np.sqrt(nn[0] ** 2 + nn[1] ** 2 + nn[2] ** 2)
-                J[:, 3 + j] = (circle_params(c0, nn, radii[k]) - base) / da
+                plus = circle_params(c0, n0 * np.cos(da) + e * np.sin(da), radii[k])
+                minus = circle_params(c0, n0 * np.cos(da) - e * np.sin(da), radii[k])
+                J[:, 3 + j] = (plus - minus) / (2 * da)
             if free_scale and k > 0:
-                J[:, 4 + k] = (circle_params(c0, n0, radii[k] * (1 + da)) - base) / da
+                plus = circle_params(c0, n0, radii[k] * np.exp(da))
+                minus = circle_params(c0, n0, radii[k] * np.exp(-da))
+                J[:, 4 + k] = (plus - minus) / (2 * da)
             res = obs[k, i] - base
             A += lam[k, i] * J.T @ W[k, i] @ J
             B += lam[k, i] ** 2 * J.T @ W[k, i] @ J
@@ -397,3 +403,101 @@ def test_vectorised_lens_correction_equals_per_ellipse_reference() -> None:
                 und = cv2.undistortPoints(pts, cam.K, cam.D, None, np.eye(3), cam.K, criteria)
             want = params_from_conic(fit_conics(und.reshape(-1, 2)))
             np.testing.assert_allclose(got[:, k, i], want, rtol=0, atol=2e-6)
+
+
+def _central_difference_jacobian(
+    center: np.ndarray,
+    normal: np.ndarray,
+    radius: np.ndarray,
+    e1: np.ndarray,
+    e2: np.ndarray,
+    *,
+    scale: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The refinement's Jacobian by central differences (stand-in for the analytic one)."""
+    from pose_estimator.conic_pose import circle_params_t
+
+    def pred(c: np.ndarray, n: np.ndarray, r: np.ndarray) -> np.ndarray:
+        return circle_params_t(c[:, None], n[:, None], r)
+
+    h, da = 1e-4 * center[2], 1e-4
+    cols = []
+    for k in range(3):
+        dc = np.zeros_like(center)
+        dc[k] = h
+        cols.append(
+            (pred(center + dc, normal, radius) - pred(center - dc, normal, radius)) / (2 * h)
+        )
+    for e in (e1, e2):
+        plus = pred(center, normal * np.cos(da) + e * np.sin(da), radius)
+        minus = pred(center, normal * np.cos(da) - e * np.sin(da), radius)
+        cols.append((plus - minus) / (2 * da))
+    if scale:
+        plus, minus = (
+            pred(center, normal, radius * np.exp(da)),
+            pred(center, normal, radius * np.exp(-da)),
+        )
+        cols.append((plus - minus) / (2 * da))
+    return pred(center, normal, radius), np.stack(cols, axis=1)
+
+
+@pytest.mark.parametrize("case", ["ideal", "plumb_bob", "missing_inner"])
+def test_analytic_refinement_equals_central_differences(
+    case: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Poses, normals and covariances with the refinement's analytic Jacobian equal those with a
+    central-difference one, with the inner circles weighing in (fits of 0.3 px edge noise)."""
+    import importlib
+    from dataclasses import replace
+
+    module = importlib.import_module("pose_estimator.estimate")
+    cam = CAMERA
+    if case == "plumb_bob":
+        cam = CameraModel(3008, 2000, CAMERA.K, "plumb_bob", np.array([-0.2, 0.1, 1e-3, -8e-4, 0]))
+    rng = np.random.default_rng(21)
+    dets = []
+    for i in range(24):
+        z = rng.uniform(600.0, 900.0)
+        R = rotation_from_slant_tilt(np.radians(rng.uniform(0.0, 70.0)), rng.uniform(0, 6.28))
+        xy = rng.uniform(-0.4, 0.4, 2) * np.array([cam.width, cam.height]) * z / cam.K[0, 0]
+        target = Target(i % 66, "ring", 7.1, R, np.array([*xy, z]))
+        det = synthetic_detection(cam, target, 0.3, rng)
+        if case == "missing_inner":
+            det = replace(det, ellipses=det.ellipses[: 1 + i % 3])
+        dets.append(det)
+    obs, cov, radius = detections_to_arrays(dets, 3.55)
+    got = estimate_arrays(obs, cov, radius, cam)
+    monkeypatch.setattr(module, "circle_params_jacobian_t", _central_difference_jacobian)
+    want = estimate_arrays(obs, cov, radius, cam)
+    assert got.valid.all() and want.valid.all()
+    # The inner circles took part: without them (a huge floor) the poses differ.
+    pose_circle_only = estimate_arrays(obs, cov, radius, cam, inner_floor_px=1e3)
+    assert np.abs(pose_circle_only.position_mm - want.position_mm).max() > 1e-3
+    np.testing.assert_allclose(got.position_mm, want.position_mm, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got.normal, want.normal, rtol=0, atol=1e-8)
+    scale = np.abs(want.covariance_mm2).max(axis=(1, 2), keepdims=True)
+    assert np.all(np.abs(got.covariance_mm2 - want.covariance_mm2) <= 1e-5 * scale)
+
+
+def test_affine_params_jacobian_equals_central_differences() -> None:
+    """The analytic Jacobian of ellipses mapped by a linear map (lens correction, unequal focal
+    lengths) equals central differences of the map."""
+    from pose_estimator.estimate import _affine_params, _affine_params_jacobian
+
+    rng = np.random.default_rng(1234)
+    n = 50
+    a, b, ang = rng.uniform(5, 80, n), rng.uniform(1, 5, n), rng.uniform(0, np.pi, n)
+    p = np.stack([*rng.normal(0, 500, (2, n)), *params_from_axes_t(a, b, ang)])
+    A = np.eye(2)[:, :, None] + rng.normal(0.0, 0.05, (2, 2, n))
+    J = _affine_params_jacobian(p, A)
+    for j in range(5):
+        dp = np.zeros_like(p)
+        dp[j] = 1e-5
+        num = (_affine_params(p + dp, A) - _affine_params(p - dp, A)) / 2e-5
+        np.testing.assert_allclose(J[:, j], num, rtol=0, atol=1e-8)
+
+
+def params_from_axes_t(a: np.ndarray, b: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Square-root shapes ``(3, N)`` of ellipses with semi-axes ``a``, ``b`` at ``angle``."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([a * c * c + b * s * s, (a - b) * c * s, a * s * s + b * c * c])
