@@ -42,8 +42,12 @@ def conic_from_params(params: ArrayLike) -> F64:
         inside-negative (the centre gives ``-1``).
     """
     p = np.asarray(params, dtype=np.float64)
-    q11, q12, q22, q13, q23, q33 = conic_entries(*np.moveaxis(p, -1, 0))
-    out = np.empty((*p.shape[:-1], 3, 3))
+    return _symmetric(*conic_entries(*np.moveaxis(p, -1, 0)))
+
+
+def _symmetric(q11: F64, q12: F64, q22: F64, q13: F64, q23: F64, q33: F64) -> F64:
+    """``(..., 3, 3)`` symmetric matrices from their six distinct entries."""
+    out = np.empty((*np.shape(q11), 3, 3))
     out[..., 0, 0] = q11
     out[..., 0, 1] = out[..., 1, 0] = q12
     out[..., 1, 1] = q22
@@ -105,9 +109,14 @@ def params_from_entries(a: F64, b: F64, c: F64, d: F64, e: F64, f: F64) -> F64:
 
 def params_from_entries_t(a: F64, b: F64, c: F64, d: F64, e: F64, f: F64) -> F64:
     """:func:`params_from_entries` with the parameter axis first: ``(5, ...)``."""
-    comps, bad = _ellipse_components(a, b, c, d, e, f)
-    out = np.empty((5, *np.shape(comps[0])))
-    out[0], out[1], out[2], out[3], out[4] = comps
+    return _stacked_first(*_ellipse_components(a, b, c, d, e, f))
+
+
+def _stacked_first(comps: tuple[F64, ...], bad: NDArray[np.bool_]) -> F64:
+    """Components stacked on a new first axis, NaN where ``bad``."""
+    out = np.empty((len(comps), *np.shape(comps[0])))
+    for k, comp in enumerate(comps):
+        out[k] = comp
     if bad.any():
         out[:, bad] = np.nan
     return out
@@ -174,11 +183,7 @@ def circle_params_t(center: F64, normal: F64, radius: F64) -> F64:
     ``center``, ``normal`` ``(3, ...)`` and ``radius`` ``(...)`` give ``(5, ...)``.
     """
     comps, _, bad = _circle_image(center, normal, radius * radius)
-    out = np.empty((5, *np.shape(comps[0])))
-    out[0], out[1], out[2], out[3], out[4] = comps
-    if bad.any():
-        out[:, bad] = np.nan
-    return out
+    return _stacked_first(comps, bad)
 
 
 def _circle_image(
@@ -574,15 +579,7 @@ def fit_conics(points: ArrayLike) -> F64:
     P = np.asarray(points, dtype=np.float64)
     U = np.ascontiguousarray(np.moveaxis(P[..., 0], -1, 0))
     V = np.ascontiguousarray(np.moveaxis(P[..., 1], -1, 0))
-    q11, q12, q22, q13, q23, q33 = fit_conic_entries_t(U, V)
-    out = np.empty((*P.shape[:-2], 3, 3))
-    out[..., 0, 0] = q11
-    out[..., 0, 1] = out[..., 1, 0] = q12
-    out[..., 1, 1] = q22
-    out[..., 0, 2] = out[..., 2, 0] = q13
-    out[..., 1, 2] = out[..., 2, 1] = q23
-    out[..., 2, 2] = q33
-    return out
+    return _symmetric(*fit_conic_entries_t(U, V))
 
 
 def fit_conic_entries_t(u: F64, v: F64) -> tuple[F64, F64, F64, F64, F64, F64]:
