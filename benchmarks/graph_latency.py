@@ -5,6 +5,8 @@ Measures, over a configurable replay (default 5 minutes):
 - per-frame latency from image publication (the header stamp, set at publication) to the arrival
   of the pose estimator's PoseArray for that frame (p50, p95, max);
 - frames published vs PoseArrays received (reliable QoS: none may be lost);
+- detection alone on the same frames in the benchmark's process before the replay (p50, p95),
+  so that the graph's share can be told from the machine's speed at the time;
 - CPU per node process (``/proc/<pid>/stat`` utime + stime over the run, % of one core) and
   resident memory sampled through the run (first, max, last: flat means no unbounded queue).
 
@@ -29,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_BAG = REPO / "bags" / "large" / "session_6mp"
@@ -67,6 +70,21 @@ def _load(bag: Path) -> tuple[list[tuple[str, Any]], Any]:
     return seq, camera
 
 
+def _detection_alone(images: list[Any]) -> NDArray[np.float64]:
+    """Wall ms of :func:`fiducial_detector.detect` on each frame in this process (node defaults,
+    one BLAS thread), before the replay: the share of the latency that is detection, measured on
+    the machine as it runs now (a shared VM's speed drifts by tens of percent over an hour)."""
+    from fiducial_detector import detect
+
+    detect(images[0])  # warm-up
+    out = []
+    for image in images:
+        t0 = time.perf_counter()
+        detect(image)
+        out.append(1e3 * (time.perf_counter() - t0))
+    return np.asarray(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print its table."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
@@ -84,6 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     seq, camera = _load(args.bag)
     n_images = sum(1 for k, _ in seq if k == "image")
     print(f"loaded {n_images} frames {camera.width}x{camera.height} from {args.bag}")
+    alone = _detection_alone([v for k, v in seq if k == "image"])
 
     import rclpy
     import yaml
@@ -224,6 +243,10 @@ def main(argv: list[str] | None = None) -> int:
             f"| latency p50 first / second half (ms) | {np.percentile(lat[:half], 50):.1f} / "
             f"{np.percentile(lat[half:], 50):.1f} | |"
         )
+    print(
+        f"| detect() alone on these frames, this machine now, p50 / p95 (ms) | "
+        f"{np.percentile(alone, 50):.1f} / {np.percentile(alone, 95):.1f} | |"
+    )
     print()
     print("| node | CPU (% of one core) | RSS start / at 10 s / max / last (MB) |")
     print("| --- | --- | --- |")
