@@ -59,8 +59,6 @@ from displacement_matcher.refine import match_units
 from displacement_matcher.rigid import kabsch
 from displacement_matcher.types import Displacement, MatchResult
 from displacement_matcher.units import (
-    UnitMap,
-    UnitSpec,
     assign_units,
     unit_motions,
 )
@@ -153,18 +151,6 @@ def icp(
     return pairs
 
 
-def _template(field: Field) -> UnitMap:
-    g = field.geometry
-    spec = UnitSpec(
-        "template",
-        g.codes,
-        {c: g.positions_mm[k] for k, c in enumerate(g.codes)},
-        {c: g.normals[k] for k, c in enumerate(g.codes)},
-    )
-    span = float(np.max(np.linalg.norm(g.positions_mm[:, None] - g.positions_mm[None], axis=2)))
-    return UnitMap((), spec, span + 5.0)
-
-
 def evaluate(
     field: Field,
     base: Sequence[FiducialPose],
@@ -174,7 +160,7 @@ def evaluate(
     method: str,
 ) -> dict[str, Any]:
     """Run one method and score it against the truth."""
-    umap = _template(field)
+    umap = field.geometry.unit_map()
     t0 = time.perf_counter()
     if method == "armourcam":
         an = match_units(base, cur, unit_map=umap, gate_mm=GATE_MM)
@@ -259,8 +245,6 @@ def evaluate(
         "rep": len(reported),
         "true": len(measurable),
         "lost": len(lost),
-        "fp": len(reported - true_disp),
-        "fn": len(measurable - reported),
         "fn_units": sorted(measurable - reported),
         "fp_units": sorted(reported - true_disp),
         "rms": rms,
@@ -366,8 +350,8 @@ def main() -> None:
             print(
                 f"{seed:>4} {method:>9} {r['right']:>7.2f} {r['near']:>12.2f} "
                 f"{r['still_disp']:>11} {r['rep']:>6}/{r['true']:<6} "
-                f"{r['fp']:>2}/{r['fn']:<2} {r['lost']:>4} {med:>18} {rms:>18} {mx:>18} "
-                f"{r['time']:>6.2f}"
+                f"{len(r['fp_units']):>2}/{len(r['fn_units']):<2} {r['lost']:>4} "
+                f"{med:>18} {rms:>18} {mx:>18} {r['time']:>6.2f}"
             )
             if args.verbose and method == "armourcam":
                 print(f"          missed units {r['fn_units']}, false {r['fp_units']}")

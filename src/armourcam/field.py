@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from armourcam.render import MARGIN, Target
+from displacement_matcher.units import UnitMap, UnitSpec
 from pose_estimator.camera import CameraModel
 from pose_estimator.types import FiducialPose
 
@@ -58,6 +59,23 @@ class UnitGeometry:
     positions_mm: NDArray[np.float64]
     normals: NDArray[np.float64]
     dn_mm: float
+
+    def unit_map(self, span_mm: float | None = None) -> UnitMap:
+        """This layout as the matcher's template (every unit carries it; no named units).
+
+        ``span_mm`` (the grouping span) defaults to the largest distance between two of the
+        unit's fiducials plus 5 mm.
+        """
+        spec = UnitSpec(
+            "template",
+            self.codes,
+            {c: self.positions_mm[k] for k, c in enumerate(self.codes)},
+            {c: self.normals[k] for k, c in enumerate(self.codes)},
+        )
+        if span_mm is None:
+            gaps = self.positions_mm[:, None] - self.positions_mm[None]
+            span_mm = float(np.max(np.linalg.norm(gaps, axis=2))) + 5.0
+        return UnitMap((), spec, span_mm)
 
 
 def dolos_geometry(

@@ -128,13 +128,19 @@ class CameraModel:
         normalised coordinates near the answer) only saves iterations: the converged result is
         the same.
         """
+        return self._undistort_rows(uv, guess, pixels=False)
+
+    def _undistort_rows(
+        self, uv: ArrayLike, guess: ArrayLike | None, *, pixels: bool
+    ) -> NDArray[np.float64]:
+        """:meth:`undistort_components` on ``(N, 2)`` rows (and a guess of the same layout)."""
         px = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         start = None
         if guess is not None:
             g = np.asarray(guess, dtype=np.float64).reshape(-1, 2)
             start = (g[:, 0], g[:, 1])
-        x, y = self.undistort_components(px[:, 0], px[:, 1], start, pixels=False)
-        return np.column_stack([x, y])
+        a, b = self.undistort_components(px[:, 0], px[:, 1], start, pixels=pixels)
+        return np.column_stack([a, b])
 
     def undistort_components(
         self,
@@ -218,13 +224,7 @@ class CameraModel:
 
         ``guess`` (``(N, 2)`` ideal pixels near the answer) only saves Newton iterations.
         """
-        px = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        start = None
-        if guess is not None:
-            g = np.asarray(guess, dtype=np.float64).reshape(-1, 2)
-            start = (g[:, 0], g[:, 1])
-        u, v = self.undistort_components(px[:, 0], px[:, 1], start)
-        return np.column_stack([u, v])
+        return self._undistort_rows(uv, guess, pixels=True)
 
     @classmethod
     def from_camera_info(

@@ -685,11 +685,18 @@ def ellipse_points(params: ArrayLike, count: int) -> F64:
     (..., count, 2) ndarray
     """
     p = np.asarray(params, dtype=np.float64)
-    t = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
-    cos, sin = np.cos(t), np.sin(t)
-    u, v, s11, s12, s22 = (p[..., i, None] for i in range(5))
+    du, dv = ellipse_offsets_t(p[..., 2], p[..., 3], p[..., 4], count)
     out = np.empty((*p.shape[:-1], count, 2))
-    # c + S (cos t, sin t) with S = [[s11, s12], [s12, s22]].
-    out[..., 0] = u + s11 * cos + s12 * sin
-    out[..., 1] = v + s12 * cos + s22 * sin
+    out[..., 0] = p[..., 0, None] + np.moveaxis(du, 0, -1)
+    out[..., 1] = p[..., 1, None] + np.moveaxis(dv, 0, -1)
     return out
+
+
+def ellipse_offsets_t(s11: F64, s12: F64, s22: F64, count: int) -> tuple[F64, F64]:
+    """Offsets ``S (cos t, sin t)`` from the centre of ``count`` points evenly spaced in angle
+    on ellipses of square-root shape ``S = [[s11, s12], [s12, s22]]`` (any shape ``(...)``):
+    ``(du, dv)``, each ``(count, ...)`` (the samples first)."""
+    t = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
+    cos = np.cos(t).reshape(-1, *([1] * np.ndim(s11)))
+    sin = np.sin(t).reshape(cos.shape)
+    return s11 * cos + s12 * sin, s12 * cos + s22 * sin

@@ -48,6 +48,7 @@ from .conic_pose import (
     circle_params_jacobian_t,
     circle_params_t,
     circle_pose_t,
+    ellipse_offsets_t,
     fit_ellipse_params_t,
     params_from_axes,
     plane_basis,
@@ -479,11 +480,7 @@ def _undistort(
     mu, mv, (a00, a01, a10, a11) = camera.undistortion_jacobian(u, v)
     # The boundary samples c + S (cos t, sin t), undistorted from the affine prediction (fewer
     # Newton steps, same converged points), and a conic refitted through them.
-    t = np.linspace(0.0, 2.0 * np.pi, _UNDISTORT_SAMPLES, endpoint=False)
-    cos = np.cos(t).reshape(-1, *([1] * u.ndim))
-    sin = np.sin(t).reshape(cos.shape)
-    du = s11 * cos + s12 * sin  # (S, K, N): offsets from the centre
-    dv = s12 * cos + s22 * sin
+    du, dv = ellipse_offsets_t(s11, s12, s22, _UNDISTORT_SAMPLES)  # (S, K, N)
     guess = (mu + a00 * du + a01 * dv, mv + a10 * du + a11 * dv)
     uu, vv = camera.undistort_components(u + du, v + dv, guess)
     new = fit_ellipse_params_t(uu, vv)
@@ -508,14 +505,26 @@ def _affine_params(p: F64, A: F64) -> F64:
 
 def _affine_shape(s11: F64, s12: F64, s22: F64, A: F64) -> tuple[F64, F64, F64]:
     """Square-root shape ``(s11, s12, s22)`` of ellipses of shape ``S`` mapped by ``A``."""
-    # M = (A S)(A S)^T with S = [[s11, s12], [s12, s22]].
-    as11 = A[0, 0] * s11 + A[0, 1] * s12
-    as12 = A[0, 0] * s12 + A[0, 1] * s22
-    as21 = A[1, 0] * s11 + A[1, 1] * s12
-    as22 = A[1, 0] * s12 + A[1, 1] * s22
-    m11 = as11 * as11 + as12 * as12
-    m12 = as11 * as21 + as12 * as22
-    m22 = as21 * as21 + as22 * as22
+    return _shape_root(*_affine_moments(s11, s12, s22, A)[1])
+
+
+def _affine_moments(
+    s11: F64, s12: F64, s22: F64, A: F64
+) -> tuple[tuple[F64, F64, F64, F64], tuple[F64, F64, F64]]:
+    """``X = A S`` (entries 11, 12, 21, 22) and ``M = X X^T`` (11, 12, 22) for the square-root
+    shapes ``S = [[s11, s12], [s12, s22]]``."""
+    x11 = A[0, 0] * s11 + A[0, 1] * s12
+    x12 = A[0, 0] * s12 + A[0, 1] * s22
+    x21 = A[1, 0] * s11 + A[1, 1] * s12
+    x22 = A[1, 0] * s12 + A[1, 1] * s22
+    m11 = x11 * x11 + x12 * x12
+    m12 = x11 * x21 + x12 * x22
+    m22 = x21 * x21 + x22 * x22
+    return (x11, x12, x21, x22), (m11, m12, m22)
+
+
+def _shape_root(m11: F64, m12: F64, m22: F64) -> tuple[F64, F64, F64]:
+    """Symmetric square root of the 2x2 SPD matrices ``M`` (see :func:`sqrtm_diff`)."""
     root = np.sqrt(m11 * m22 - m12 * m12)
     t = np.sqrt(m11 + m22 + 2.0 * root)
     return (m11 + root) / t, m12 / t, (m22 + root) / t
@@ -533,12 +542,8 @@ def _affine_params_jacobian(p: F64, A: F64) -> F64:
     J[:2, :2] = A
     s11, s12, s22 = p[2], p[3], p[4]
     a00, a01, a10, a11 = A[0, 0], A[0, 1], A[1, 0], A[1, 1]
-    x11, x12 = a00 * s11 + a01 * s12, a00 * s12 + a01 * s22
-    x21, x22 = a10 * s11 + a11 * s12, a10 * s12 + a11 * s22
-    m11 = x11 * x11 + x12 * x12
-    m12 = x11 * x21 + x12 * x22
-    m22 = x21 * x21 + x22 * x22
-    new = _affine_shape(s11, s12, s22, A)
+    (x11, x12, x21, x22), (m11, m12, m22) = _affine_moments(s11, s12, s22, A)
+    new = _shape_root(m11, m12, m22)
     zero = np.zeros_like(a00)
     # dX = A dS for dS = [[1, 0], [0, 0]], [[0, 1], [1, 0]] and [[0, 0], [0, 1]].
     for j, (d11, d12, d21, d22) in enumerate(

@@ -18,8 +18,6 @@ from displacement_matcher import match
 from displacement_matcher.damage import assess, thresholds
 from displacement_matcher.refine import match_units
 from displacement_matcher.units import (
-    UnitMap,
-    UnitSpec,
     group_fiducials,
     mirror_normals,
     unit_motions,
@@ -28,6 +26,7 @@ from pose_estimator.conic_pose import circle_params, circle_pose, conic_from_par
 from pose_estimator.types import FiducialPose
 
 GEO = dolos_geometry()
+UMAP = GEO.unit_map()
 # Local z towards the camera (the camera looks along +z), tilted so all three front faces show.
 R0 = np.diag([1.0, -1.0, -1.0])
 
@@ -38,17 +37,6 @@ def _rot(axis: list[float], deg: float) -> np.ndarray:
     a = np.asarray(axis, dtype=np.float64)
     r, _ = cv2.Rodrigues(a / np.linalg.norm(a) * np.radians(deg))
     return np.asarray(r)
-
-
-def _template() -> UnitMap:
-    spec = UnitSpec(
-        "template",
-        GEO.codes,
-        {c: GEO.positions_mm[k] for k, c in enumerate(GEO.codes)},
-        {c: GEO.normals[k] for k, c in enumerate(GEO.codes)},
-    )
-    span = float(np.max(np.linalg.norm(GEO.positions_mm[:, None] - GEO.positions_mm[None], axis=2)))
-    return UnitMap((), spec, span + 5.0)
 
 
 def _unit(centre: np.ndarray, R: np.ndarray) -> list[FiducialPose]:
@@ -104,7 +92,7 @@ def test_wrong_normal_branch_does_not_split_units() -> None:
         for p in _unit(c, _rot([0.3, 1.0, 0.2], rng.uniform(-15, 15)) @ R0):
             poses.append(_flip_normal(p) if rng.random() < 0.5 else p)
             owner.append(u)
-    groups = group_fiducials(poses, span_mm=_template().span_mm, template=_template().template)
+    groups = group_fiducials(poses, span_mm=UMAP.span_mm, template=UMAP.template)
     owners = np.array(owner)
     assert sorted(sorted(set(owners[g].tolist())) for g in groups) == [[u] for u in range(6)]
 
@@ -117,7 +105,7 @@ def test_still_units_with_flipped_normals_are_not_displaced() -> None:
         unit = _unit(c, R0)
         base += [_flip_normal(p) if rng.random() < 0.4 else p for p in unit]
         cur += [_flip_normal(p) if rng.random() < 0.4 else p for p in unit]
-    an = match_units(base, cur, unit_map=_template(), gate_mm=50.0)
+    an = match_units(base, cur, unit_map=UMAP, gate_mm=50.0)
     units, summary = assess(an.units, thresholds(GEO.dn_mm))
     assert len(units) == 5 and summary.displaced_units == 0
     assert all(u.status == "still" for u in units)
@@ -138,7 +126,7 @@ def test_one_depth_outlier_neither_displaces_nor_loses_its_unit(
         base[k] = _shift_depth(base[k], outlier_mm)
     else:
         cur[k] = _shift_depth(cur[k], outlier_mm)
-    an = match_units(base, cur, unit_map=_template(), gate_mm=50.0)
+    an = match_units(base, cur, unit_map=UMAP, gate_mm=50.0)
     motions, summary = assess(an.units, thresholds(GEO.dn_mm))
     assert summary.displaced_units == 0 and summary.moved_units == 0
     assert len(motions) == 3  # the outlier did not split its unit for good
@@ -153,7 +141,7 @@ def test_moved_unit_with_a_depth_outlier_is_displaced_at_its_true_distance() -> 
     base = [p for c in centres for p in _unit(c, R0)]
     cur = [p for j, c in enumerate(centres) for p in _unit(c + (move if j == 0 else 0.0), R0)]
     cur[1] = _shift_depth(cur[1], 35.0)
-    an = match_units(base, cur, unit_map=_template(), gate_mm=50.0)
+    an = match_units(base, cur, unit_map=UMAP, gate_mm=50.0)
     motions, summary = assess(an.units, thresholds(GEO.dn_mm))
     assert summary.displaced_units == 1
     moved = next(u for u in motions if u.status == "displaced")
@@ -176,7 +164,7 @@ def test_lone_fiducial_counts_only_confirmed_motion(
     base = [FiducialPose(3, p0, normal, realistic_cov(p0, 0.1, 1.0))]
     p1 = p0 + lateral_mm * across + depth_mm * ray
     cur = [FiducialPose(3, p1, normal, realistic_cov(p1, 0.1, 1.0))]
-    an = match_units(base, cur, unit_map=_template(), gate_mm=60.0)
+    an = match_units(base, cur, unit_map=UMAP, gate_mm=60.0)
     motions, summary = assess(an.units, thresholds(GEO.dn_mm))
     assert len(motions) == 1 and motions[0].n_matched == 1
     assert (summary.displaced_units == 1) is displaced
@@ -200,7 +188,7 @@ def test_depth_outliers_do_not_split_units() -> None:
                 p = _shift_depth(p, float(rng.choice([-1.0, 1.0]) * rng.uniform(8.0, 80.0)))
             poses.append(p)
             owner.append(u)
-    groups = group_fiducials(poses, span_mm=_template().span_mm, template=_template().template)
+    groups = group_fiducials(poses, span_mm=UMAP.span_mm, template=UMAP.template)
     owners = np.array(owner)
     assert sorted(sorted(set(owners[g].tolist())) for g in groups) == [[u] for u in range(6)]
 
@@ -225,8 +213,8 @@ def test_lone_cross_code_match_does_not_displace_a_unit() -> None:
     first = match(base, cur, gate_mm=50.0)
     assert [d.label for d in first.displacements].count("cross_code") == 1
     for found in (
-        unit_motions(first, unit_map=_template())[0],  # the global matching alone
-        match_units(base, cur, unit_map=_template(), gate_mm=50.0).units,
+        unit_motions(first, unit_map=UMAP)[0],  # the global matching alone
+        match_units(base, cur, unit_map=UMAP, gate_mm=50.0).units,
     ):
         motions, summary = assess(found, thresholds(GEO.dn_mm))
         assert summary.displaced_units == 0 and summary.overturned_units == 0

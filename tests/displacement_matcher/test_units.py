@@ -10,8 +10,6 @@ from displacement_matcher import MatcherError, match
 from displacement_matcher.refine import match_units
 from displacement_matcher.rigid import kabsch, rigid_fit
 from displacement_matcher.units import (
-    UnitMap,
-    UnitSpec,
     group_fiducials,
     load_unit_map,
     parse_unit_map,
@@ -26,17 +24,6 @@ def _rot(axis: list[float], deg: float) -> np.ndarray:
     a = np.asarray(axis, dtype=np.float64)
     r, _ = cv2.Rodrigues(a / np.linalg.norm(a) * np.radians(deg))
     return np.asarray(r)
-
-
-def _template() -> UnitMap:
-    g = dolos_geometry()
-    spec = UnitSpec(
-        "template",
-        g.codes,
-        {c: g.positions_mm[k] for k, c in enumerate(g.codes)},
-        {c: g.normals[k] for k, c in enumerate(g.codes)},
-    )
-    return UnitMap((), spec, 40.0)
 
 
 @pytest.mark.parametrize("deg", [0.0, 5.0, 25.0, 60.0])
@@ -72,7 +59,7 @@ def test_unit_motion_matches_ground_truth_on_a_field() -> None:
     base = field.before.poses(rng, sigma_xy_mm=0.05, sigma_z_mm=0.3, include_occluded=True)
     cur = field.after.poses(rng, sigma_xy_mm=0.05, sigma_z_mm=0.3, include_occluded=True)
     bid = field.before.visible_ids
-    an = match_units(base, cur, unit_map=_template(), gate_mm=50.0)
+    an = match_units(base, cur, unit_map=dolos_geometry().unit_map(40.0), gate_mm=50.0)
     measured = 0
     for u in an.units:
         owners = field.before.unit[bid[list(u.baseline_indices)]]
@@ -91,7 +78,7 @@ def test_unit_motion_matches_ground_truth_on_a_field() -> None:
 def test_overturned_unit_is_flagged() -> None:
     """Fiducials seen before face away after, the opposite face shows: overturned."""
     g = dolos_geometry()
-    umap = _template()
+    umap = dolos_geometry().unit_map(40.0)
     R0 = np.diag([1.0, -1.0, -1.0])  # local z towards the camera
     c0 = np.array([0.0, 0.0, 800.0])
     flip = R0 @ _rot([1.0, 0.0, 0.0], 180.0)  # about the shank (local x)
@@ -119,7 +106,7 @@ def test_grouping_separates_interlocked_units() -> None:
     """With the template's positions and normals every group is one true unit."""
     field = make_field(120, seed=5)
     poses = field.before.poses(np.random.default_rng(2))
-    groups = group_fiducials(poses, span_mm=40.0, template=_template().template)
+    groups = group_fiducials(poses, span_mm=40.0, template=dolos_geometry().unit_map(40.0).template)
     owners = field.before.unit[field.before.observable_ids]
     assert sum(len(g) for g in groups) == len(poses)
     pure = sum(len(set(owners[g].tolist())) == 1 for g in groups)
