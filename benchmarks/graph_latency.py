@@ -4,6 +4,8 @@ Measures, over a configurable replay (default 5 minutes):
 
 - per-frame latency from image publication (the header stamp, set at publication) to the arrival
   of the pose estimator's PoseArray for that frame (p50, p95, max);
+- where it goes: publication to the detections' arrival and on to the pose array's, p50/p95 and
+  over the slowest 5 % of frames, beside each node's own processing time from its diagnostics;
 - frames published vs PoseArrays received (reliable QoS: none may be lost);
 - detection alone on the same frames in the benchmark's process before the replay (p50, p95),
   so that the graph's share can be told from the machine's speed at the time;
@@ -133,8 +135,9 @@ def main(argv: list[str] | None = None) -> int:
     procs = graph.launch_processes(str(params), log_dir=tmp / "logs")
     rclpy.init()
     node = rclpy.create_node("armourcam_bench")
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseArray
-    from sensor_msgs.msg import CameraInfo, Image
+    from sensor_msgs.msg import CameraInfo, Image, PointCloud2
     from std_msgs.msg import Bool, String
 
     from armourcam import bagio
@@ -146,16 +149,39 @@ def main(argv: list[str] | None = None) -> int:
     pub_id = node.create_publisher(String, "/hall/run_id", event_qos())
     sent: dict[int, float] = {}
     latency_ms: list[float] = []
+    # Per frame (stamp ns): arrival of its detections and of its pose array, ns.
+    arrivals: dict[int, dict[str, int]] = {}
+    # Each node's last reported processing times (its diagnostics' frame_ms_* values).
+    node_times: dict[str, dict[str, str]] = {}
     lock = threading.Lock()
 
-    def on_poses(msg: PoseArray) -> None:
+    def arrived(stage: str, stamp: Any) -> int | None:
         t = time.time_ns()
-        key = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        key = stamp.sec * 1_000_000_000 + stamp.nanosec
         with lock:
-            if key in sent:
-                latency_ms.append((t - key) / 1e6)
+            if key not in sent:
+                return None
+            arrivals.setdefault(key, {})[stage] = t
+        return t - key
+
+    def on_poses(msg: PoseArray) -> None:
+        dt = arrived("poses", msg.header.stamp)
+        if dt is not None:
+            with lock:
+                latency_ms.append(dt / 1e6)
+
+    def on_detections(msg: PointCloud2) -> None:
+        arrived("detections", msg.header.stamp)
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if values.get("frame_ms_p95"):
+                node_times[status.name.removeprefix("armourcam: ")] = values
 
     sub = node.create_subscription(PoseArray, "/armourcam/pose_array", on_poses, qos)
+    node.create_subscription(PointCloud2, "/armourcam/detections", on_detections, qos)
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)
@@ -247,6 +273,7 @@ def main(argv: list[str] | None = None) -> int:
         f"| detect() alone on these frames, this machine now, p50 / p95 (ms) | "
         f"{np.percentile(alone, 50):.1f} / {np.percentile(alone, 95):.1f} | |"
     )
+    _print_stages(arrivals, lat, node_times)
     print()
     print("| node | CPU (% of one core) | RSS start / at 10 s / max / last (MB) |")
     print("| --- | --- | --- |")
@@ -260,6 +287,39 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(f"\nmatcher reported {len(runs)} runs during the replay; logs in {tmp / 'logs'}")
     return 0 if published == len(lat) else 1
+
+
+def _print_stages(
+    arrivals: dict[int, dict[str, int]], lat: NDArray[np.float64], node_times: dict[str, Any]
+) -> None:
+    """Where the latency goes: publication -> detections received -> pose array received, for
+    all frames and for the slowest 5 %, beside each node's own processing time (its
+    diagnostics over its last 100 frames)."""
+    both = [
+        (a["detections"] - k, a["poses"] - a["detections"])
+        for k, a in arrivals.items()
+        if "detections" in a and "poses" in a
+    ]
+    if not both or not lat.size:
+        return
+    stages = np.asarray(both, dtype=np.float64) / 1e6
+    total = stages.sum(axis=1)
+    slow = total >= np.percentile(total, 95)
+    print()
+    print("| stage (ms) | p50 | p95 | mean over the slowest 5 % of frames |")
+    print("| --- | --- | --- | --- |")
+    names = ("publication -> detections received", "detections -> pose array received")
+    for j, name in enumerate(names):
+        col = stages[:, j]
+        print(
+            f"| {name} | {np.percentile(col, 50):.1f} | {np.percentile(col, 95):.1f} "
+            f"| {col[slow].mean():.1f} |"
+        )
+    for name, values in sorted(node_times.items()):
+        print(
+            f"| {name} processing, its last {values.get('frame_ms_frames', '?')} frames "
+            f"| {values.get('frame_ms_p50', '')} | {values.get('frame_ms_p95', '')} | |"
+        )
 
 
 if __name__ == "__main__":

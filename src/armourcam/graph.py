@@ -26,6 +26,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -109,6 +110,47 @@ def publish_diagnostics(
     arr = DiagnosticArray(status=[status])
     arr.header.stamp = node.get_clock().now().to_msg()
     publisher.publish(arr)
+
+
+class FrameTimes:
+    """Processing times of a node's recent frames, for its diagnostics: a rig's monitoring sees
+    a node falling behind the camera (``p95`` near the frame period) before frames queue up or
+    are dropped.
+
+    Parameters
+    ----------
+    window : int
+        Frames the statistics cover (the most recent).
+    """
+
+    def __init__(self, window: int = 100) -> None:
+        if window < 1:
+            raise GraphError(f"frame time window must be >= 1 frame, got {window}")
+        self._ms: deque[float] = deque(maxlen=window)
+
+    def add(self, ms: float) -> None:
+        """Record one frame's processing time, milliseconds."""
+        self._ms.append(float(ms))
+
+    def values(self) -> dict[str, str]:
+        """Diagnostic key/values: ``frame_ms_last``, ``frame_ms_p50``, ``frame_ms_p95``,
+        ``frame_ms_max`` over the window and ``frame_ms_frames``, the frames it holds (the
+        statistics are empty strings before the first frame)."""
+        if not self._ms:
+            stats = dict.fromkeys(("last", "p50", "p95", "max"), "")
+        else:
+            ordered = sorted(self._ms)
+            n = len(ordered)
+            # Nearest-rank percentiles: values that occurred, no interpolation.
+            stats = {
+                "last": f"{self._ms[-1]:.1f}",
+                "p50": f"{ordered[max(0, -(-50 * n // 100) - 1)]:.1f}",
+                "p95": f"{ordered[max(0, -(-95 * n // 100) - 1)]:.1f}",
+                "max": f"{ordered[-1]:.1f}",
+            }
+        out = {f"frame_ms_{k}": v for k, v in stats.items()}
+        out["frame_ms_frames"] = str(len(self._ms))
+        return out
 
 
 def latched_qos(depth: int = 1) -> QoSProfile:

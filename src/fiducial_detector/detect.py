@@ -308,6 +308,10 @@ def _candidates(
     return _Candidates(design, sel.centre, sel.axes, sel.angle, np.zeros((n, 2)))
 
 
+#: Detections nearest each candidate that :func:`_outside` tests.
+_OUTSIDE_NEIGHBOURS = 8
+
+
 def _outside(cands: _Candidates, found: list[FiducialDetection]) -> _Candidates:
     """Drop candidates that :func:`_deduplicate` would drop anyway, before reading them.
 
@@ -323,13 +327,15 @@ def _outside(cands: _Candidates, found: list[FiducialDetection]) -> _Candidates:
     centre = np.array([d.center_px for d in found])
     outer = np.array([d.pose_ellipse.semi_major / d.pose_ellipse.radius for d in found])
     margin = 3.0 * (0.25 * cands.axes[:, 1] + 1.5)
-    keep = np.ones(len(cands.centre), dtype=bool)
-    # Chunks of candidates keep the distance matrix small.
-    for lo in range(0, len(cands.centre), 1024):
-        c = cands.centre[lo : lo + 1024]
-        dist = np.hypot(c[:, None, 0] - centre[None, :, 0], c[:, None, 1] - centre[None, :, 1])
-        inside = np.any(dist + margin[lo : lo + 1024, None] < outer[None, :], axis=1)
-        keep[lo : lo + 1024] = ~inside
+    # The few detections nearest each candidate: a candidate inside a detection is nearer its
+    # centre than that detection's outer radius, and detections do not overlap, so eight
+    # neighbours hold it (one missed here would only be read and dropped later).
+    k = min(_OUTSIDE_NEIGHBOURS, len(found))
+    dist, near = cKDTree(centre).query(
+        cands.centre, k=[*range(1, k + 1)], distance_upper_bound=float(outer.max())
+    )
+    reach = np.append(outer, 0.0)[near]  # no neighbour: index len(found), distance inf
+    keep = ~np.any(dist + margin[:, None] < reach, axis=1)
     if np.all(keep):
         return cands
     return _Candidates(

@@ -42,6 +42,7 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 
 from armourcam import image_codec, records
 from armourcam.graph import (
+    FrameTimes,
     GraphError,
     Param,
     declare_parameters,
@@ -136,7 +137,7 @@ class FiducialDetectorNode(Node):
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
         self.received = self.published = self.dropped = 0
         self.last_error = ""
-        self.last_ms = 0.0
+        self.frame_times = FrameTimes()
         self.get_logger().info(
             f"detecting on {cfg.input_topic} ({msg_type.__name__}, {cfg.qos}) -> "
             f"{cfg.detections_topic}"
@@ -169,7 +170,7 @@ class FiducialDetectorNode(Node):
         )
         self._pub.publish(cloud)
         self.published += 1
-        self.last_ms = 1e3 * (time.perf_counter() - t0)
+        self.frame_times.add(1e3 * (time.perf_counter() - t0))
 
     def _publish_diagnostics(self) -> None:
         publish_diagnostics(
@@ -182,7 +183,7 @@ class FiducialDetectorNode(Node):
                 "frames_received": str(self.received),
                 "frames_published": str(self.published),
                 "frames_dropped": str(self.dropped),
-                "last_frame_ms": f"{self.last_ms:.1f}",
+                **self.frame_times.values(),
             },
         )
 

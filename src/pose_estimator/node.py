@@ -45,6 +45,7 @@ from sensor_msgs.msg import CameraInfo, PointCloud2, PointField
 
 from armourcam import records
 from armourcam.graph import (
+    FrameTimes,
     GraphError,
     Param,
     declare_parameters,
@@ -158,7 +159,7 @@ class PoseEstimatorNode(Node):
         self._pending: deque[PointCloud2] = deque()
         self.received = self.published = self.dropped = 0
         self.last_error = ""
-        self.last_ms = 0.0
+        self.frame_times = FrameTimes()
         source = cfg.calibration_file or cfg.camera_info_topic
         self.get_logger().info(
             f"poses from {cfg.detections_topic} with camera from {source} -> {cfg.poses_topic}, "
@@ -227,7 +228,7 @@ class PoseEstimatorNode(Node):
         )
         self._pub_array.publish(pose_array(msg.header, poses))
         self.published += 1
-        self.last_ms = 1e3 * (time.perf_counter() - t0)
+        self.frame_times.add(1e3 * (time.perf_counter() - t0))
 
     def _publish_diagnostics(self) -> None:
         ok = self.camera is not None and not self.dropped
@@ -244,7 +245,7 @@ class PoseEstimatorNode(Node):
                 "frames_published": str(self.published),
                 "frames_dropped": str(self.dropped),
                 "frames_pending": str(len(self._pending)),
-                "last_frame_ms": f"{self.last_ms:.1f}",
+                **self.frame_times.values(),
             },
         )
 

@@ -52,3 +52,26 @@ def test_status_carries_level_name_and_values(level: str, code: int) -> None:
     assert status.hardware_id == "/camera/camera_info" and status.message == "m"
     assert {kv.key: kv.value for kv in status.values} == values
     assert arr.header.stamp.sec > 0
+
+
+def test_frame_times_are_nearest_rank_percentiles_of_the_recent_window() -> None:
+    from armourcam.graph import FrameTimes, GraphError
+
+    times = FrameTimes(window=20)
+    assert times.values() == {
+        "frame_ms_last": "",
+        "frame_ms_p50": "",
+        "frame_ms_p95": "",
+        "frame_ms_max": "",
+        "frame_ms_frames": "0",
+    }
+    # 1..30 ms: the window keeps the last 20 (11..30), whose nearest-rank p50 is the 10th
+    # (20) and p95 the 19th (29).
+    for ms in range(1, 31):
+        times.add(float(ms))
+    values = times.values()
+    assert values["frame_ms_last"] == "30.0" and values["frame_ms_max"] == "30.0"
+    assert values["frame_ms_p50"] == "20.0" and values["frame_ms_p95"] == "29.0"
+    assert values["frame_ms_frames"] == "20"
+    with pytest.raises(GraphError, match="window"):
+        FrameTimes(window=0)
