@@ -36,7 +36,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -543,7 +543,7 @@ class _EdgeModel:
             mask &= ~near | (geo.kappa * s <= f32(_MAX_CURVATURE_SPREAD))
             t = np.asarray((geo.d + f32(0.5) * geo.kappa * s * s) / s, dtype=np.float32)
             gauss = np.exp(f32(-0.5) * t * t)
-            step_sum += f32(sign) * _erf_scaled(t, gauss)
+            step_sum += f32(sign) * erf_scaled(t, gauss)
             gauss_l.append(gauss)
         return geos, mask, step_sum, gauss_l, s
 
@@ -720,21 +720,23 @@ def _geometry(
 
 # Abramowitz & Stegun 7.1.26 (|error| < 1.5e-7): erf(x) = 1 - poly(1 / (1 + p x)) exp(-x^2),
 # which reuses the Gaussian the Jacobian needs anyway (scipy's erf costs twice as much).
+_Float = TypeVar("_Float", np.float32, np.float64)
 _AS_P = 0.3275911 / np.sqrt(2.0)
 _AS_COEFFS = (1.061405429, -1.453152027, 1.421413741, -0.284496736, 0.254829592)
 
 
-def _erf_scaled(t: NDArray[np.float32], gauss: NDArray[np.float32]) -> NDArray[np.float32]:
-    """``erf(t / sqrt(2))`` given ``gauss = exp(-t^2 / 2)``."""
-    f32 = np.float32
-    z = f32(1.0) / (f32(1.0) + f32(_AS_P) * np.abs(t))
-    poly = np.full_like(t, f32(_AS_COEFFS[0]))
+def erf_scaled(t: NDArray[_Float], gauss: NDArray[_Float]) -> NDArray[_Float]:
+    """``erf(t / sqrt(2))`` given ``gauss = exp(-t^2 / 2)``, in the precision of ``t``."""
+    one = t.dtype.type(1.0)
+    z = one / (one + t.dtype.type(_AS_P) * np.abs(t))
+    poly = np.full_like(t, _AS_COEFFS[0])
     for c in _AS_COEFFS[1:]:
         poly *= z
-        poly += f32(c)
+        poly += t.dtype.type(c)
     poly *= z
     poly *= gauss
-    return np.asarray(np.copysign(f32(1.0) - poly, t), dtype=np.float32)
+    out: NDArray[_Float] = np.copysign(one - poly, t)
+    return out
 
 
 def _levels(

@@ -34,13 +34,13 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import ndtr
 
 from .edge_fit import (
     EdgeFits,
     checked_image,
     checked_rho_range,
     checked_seeds,
+    erf_scaled,
     from_quadratic_form,
     per_matrix,
     polarity_signs,
@@ -333,10 +333,15 @@ def _window_terms(
 def _truncated_normal(
     alpha: NDArray[np.float64], beta: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Mass, mean and variance of a standard normal truncated to ``[alpha, beta]`` (finite)."""
-    z = np.maximum(ndtr(beta) - ndtr(alpha), 1e-12)
-    pa = np.exp(-0.5 * alpha * alpha) * _INV_SQRT_2PI
-    pb = np.exp(-0.5 * beta * beta) * _INV_SQRT_2PI
+    """Mass, mean and variance of a standard normal truncated to ``[alpha, beta]`` (finite).
+
+    The normal's CDF through :func:`.edge_fit.erf_scaled` (error < 1.5e-7), which reuses the
+    densities needed anyway: a third of the cost of ``scipy.special.ndtr``."""
+    ga = np.exp(-0.5 * alpha * alpha)
+    gb = np.exp(-0.5 * beta * beta)
+    z = np.maximum(0.5 * (erf_scaled(beta, gb) - erf_scaled(alpha, ga)), 1e-12)
+    pa = ga * _INV_SQRT_2PI
+    pb = gb * _INV_SQRT_2PI
     mean = (pa - pb) / z
     var = np.maximum(1.0 + (alpha * pa - beta * pb) / z - mean * mean, 1e-6)
     return z, mean, var
@@ -364,9 +369,17 @@ def _lines(
     a, b, ang = (ellipses[:, i : i + 1] for i in (2, 3, 4))
     # Spread evenly in arc length to first order: parametric angle phi = psi + e sin(2 psi) / 2,
     # e = (a - b) / (a + b), for uniform psi.
-    psi = (kk + 0.5) * (2.0 * np.pi / count[:, None])
-    phi = psi + 0.5 * ((a - b) / (a + b)) * np.sin(2.0 * psi)
-    cp, sp = np.cos(phi), np.sin(phi)
+    # In single precision (SIMD trigonometry, several times faster): any angle serves, as long as
+    # the point and its normal below come from the same (cp, sp); the spacing is a heuristic and
+    # float32's 1e-7 is ~1e-5 px on a 100 px ellipse.
+    psi = (kk + 0.5).astype(np.float32) * (2.0 * np.pi / count[:, None]).astype(np.float32)
+    ecc = (0.5 * (a - b) / (a + b)).astype(np.float32)
+    phi = psi + ecc * np.sin(np.float32(2.0) * psi)
+    cp, sp = np.cos(phi).astype(np.float64), np.sin(phi).astype(np.float64)
+    # Exactly on the unit circle in double precision, so that the point lies on the ellipse.
+    unit = np.sqrt(cp * cp + sp * sp)
+    cp /= unit
+    sp /= unit
     ca, sa = np.cos(ang), np.sin(ang)
     lx, ly = a * cp, b * sp  # point in the ellipse frame
     nx, ny = b * cp, a * sp  # outward normal direction in the ellipse frame
@@ -484,11 +497,12 @@ def _solve(
     the lines beyond :data:`_OUTLIER_SDS` robust sds: the step, its covariance (the positions'
     variance from the residuals), the RMS residual and the lines used."""
     k = jac.shape[0]
+    jw = jac * good[:, :, None]
+    jwt = np.swapaxes(jw, 1, 2)
+    normal = jwt @ jac
+    rhs = -(jwt @ t[:, :, None])[:, :, 0]
     use = good
     for rnd in range(2):
-        jw = jac * use[:, :, None]
-        normal = np.swapaxes(jw, 1, 2) @ jac
-        rhs = -(np.swapaxes(jw, 1, 2) @ t[:, :, None])[:, :, 0]
         used = use.sum(axis=1)
         solvable = used >= _MIN_LINES
         delta = np.full((k, 5), np.nan)
@@ -503,7 +517,14 @@ def _solve(
         sd = np.sqrt((resid * resid).sum(axis=1) / np.maximum(used - 5, 1))
         if rnd == 0:
             # A few bad lines inflate the RMS only a little among a fit's hundred or more.
-            use = good & (np.abs(resid) <= _OUTLIER_SDS * sd[:, None])
+            keep = np.abs(resid) <= _OUTLIER_SDS * sd[:, None]
+            # The few lines dropped come out of the sums (cheaper than summing all again).
+            fit, line = np.nonzero(use & ~keep)
+            if fit.size:
+                jd = jac[fit, line]
+                np.subtract.at(normal, fit, jd[:, :, None] * jd[:, None, :])
+                np.add.at(rhs, fit, jd * t[fit, line][:, None])
+            use = use & keep
     cov = np.full((k, 5, 5), np.nan)
     if np.any(solvable):
         inv = per_matrix(np.linalg.inv, (int(solvable.sum()), 5, 5), normal[solvable])
