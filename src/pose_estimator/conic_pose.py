@@ -267,14 +267,14 @@ def circle_params_jacobian_t(
     dax[0], db11[0], db12[0] = cz, -2.0 * cx, -cy
     day[1], db12[1], db22[1] = cz, -cx, -2.0 * cy
     dax[2], day[2], dq[2] = cx, cy, 2.0 * cz
-    for col, e in ((3, e1), (4, e2)):
-        ex, ey, ez = e[0], e[1], e[2]
-        dax[col] = r2 * (ex * nz + nx * ez)
-        day[col] = r2 * (ey * nz + ny * ez)
-        dq[col] = r2 * (2.0 * nz * ez)
-        db11[col] = r2 * (-2.0 * ex * nx)
-        db12[col] = r2 * -(ex * ny + nx * ey)
-        db22[col] = r2 * (-2.0 * ey * ny)
+    # Both tilt directions at once: (2, 1, N) components broadcast against r2 (K, N).
+    ex, ey, ez = np.stack((e1, e2), axis=1)[:, :, None]
+    dax[3:5] = r2 * (ex * nz + nx * ez)
+    day[3:5] = r2 * (ey * nz + ny * ez)
+    dq[3:5] = r2 * (2.0 * nz * ez)
+    db11[3:5] = r2 * (-2.0 * ex * nx)
+    db12[3:5] = r2 * -(ex * ny + nx * ey)
+    db22[3:5] = r2 * (-2.0 * ey * ny)
     if scale:
         r2x2 = 2.0 * r2
         dax[5], day[5] = r2x2 * (nx * nz), r2x2 * (ny * nz)
@@ -285,10 +285,10 @@ def circle_params_jacobian_t(
     with np.errstate(divide="ignore", invalid="ignore"):
         du = np.multiply(dax - u * dq, inv_q, out=jac[0])
         dv = np.multiply(day - v * dq, inv_q, out=jac[1])
-        # B / q = M - m m^T.
-        dm11 = (db11 - dq * (m11 - u * u)) * inv_q + 2.0 * du * u
+        # B / q = M - m m^T. (2 u is exact, so du (2 u) = 2 du u with one full-size product.)
+        dm11 = (db11 - dq * (m11 - u * u)) * inv_q + du * (2.0 * u)
         dm12 = (db12 - dq * (m12 - u * v)) * inv_q + du * v + u * dv
-        dm22 = (db22 - dq * (m22 - v * v)) * inv_q + 2.0 * dv * v
+        dm22 = (db22 - dq * (m22 - v * v)) * inv_q + dv * (2.0 * v)
         jac[2:] = sqrtm_diff(m11, m12, m22, s11, s12, s22, dm11, dm12, dm22)
     params = np.empty((5, *r2.shape))
     params[0], params[1], params[2], params[3], params[4] = u, v, s11, s12, s22
@@ -521,12 +521,16 @@ def _adjugate_columns(
     """Columns of the adjugate of ``[[d1, a12, a13], [a12, d2, a23], [a13, a23, d3]]``.
 
     They are the cross products of pairs of its rows; for a matrix ``A - l I`` with ``l`` near
-    a simple eigenvalue each is parallel to that eigenvector.
+    a simple eigenvalue each is parallel to that eigenvector. The adjugate of a symmetric
+    matrix is symmetric: six distinct cofactors.
     """
+    c12 = a13 * a23 - a12 * d3
+    c13 = a12 * a23 - a13 * d2
+    c23 = a12 * a13 - d1 * a23
     return (
-        (d2 * d3 - a23 * a23, a23 * a13 - a12 * d3, a12 * a23 - d2 * a13),
-        (a13 * a23 - a12 * d3, d1 * d3 - a13 * a13, a12 * a13 - d1 * a23),
-        (a12 * a23 - a13 * d2, a13 * a12 - d1 * a23, d1 * d2 - a12 * a12),
+        (d2 * d3 - a23 * a23, c12, c13),
+        (c12, d1 * d3 - a13 * a13, c23),
+        (c13, c23, d1 * d2 - a12 * a12),
     )
 
 

@@ -40,7 +40,7 @@ from operator import attrgetter
 import numpy as np
 from numpy.typing import NDArray
 
-from fiducial_detector.types import FiducialDetection
+from fiducial_detector.types import Ellipse, FiducialDetection
 
 from .batched import spd_inverse
 from .camera import CameraModel
@@ -50,7 +50,6 @@ from .conic_pose import (
     circle_pose_t,
     ellipse_offsets_t,
     fit_ellipse_params_t,
-    params_from_axes,
     plane_basis,
     sqrtm_diff,
 )
@@ -101,16 +100,16 @@ def estimate(
     Raises
     ------
     PoseError
-        If ``diameter_mm`` is not a positive finite number or an item is not a detection.
+        If ``diameter_mm`` is not a positive finite number, an item is not a detection or a
+        detection has no (or malformed) ellipses.
     """
     if not np.isfinite(diameter_mm) or diameter_mm <= 0:
         raise PoseError(f"diameter_mm must be a positive finite number, got {diameter_mm!r}")
     dets = list(detections)
-    for d in dets:
-        if not isinstance(d, FiducialDetection):
-            raise PoseError(f"expected FiducialDetection, got {type(d).__name__}")
-        if not d.ellipses:
-            raise PoseError(f"detection of code {d.code} has no ellipses")
+    # Checked per type, not per detection (an empty detection is caught while gathering).
+    for kind in {type(d) for d in dets}:
+        if not issubclass(kind, FiducialDetection):
+            raise PoseError(f"expected FiducialDetection, got {kind.__name__}")
     if not dets:
         return []
     obs, cov, radius = detections_to_arrays(dets, 0.5 * float(diameter_mm))
@@ -156,48 +155,69 @@ def detections_to_arrays(
 ) -> tuple[F64, F64, F64]:
     """Observation arrays ``(N, K, 5)``, covariances ``(N, K, 5, 5)`` and radii ``(N, K)`` (mm).
 
-    Missing circles (fewer ellipses than ``K``) get NaN observations.
+    Missing circles (fewer ellipses than ``K``) get NaN observations. The arrays returned are
+    views of memory laid out as :func:`estimate_arrays` works, ``(5, K, N)`` and
+    ``(5, 5, K, N)``, which it then uses without a copy.
 
     Raises
     ------
     PoseError
-        If an ellipse's centre is not a pair of numbers.
+        If a detection has no ellipses, an ellipse's centre is not a pair of numbers or a
+        parameter is not a number.
     """
-    n = len(dets)
-    per_det = list(map(attrgetter("ellipses"), dets))
+    per_det = [d.ellipses for d in dets]
     counts = list(map(len, per_det))
-    kmax = max(counts)
-    ells = list(chain.from_iterable(per_det))
-    m = len(ells)
-    # Flat iterators into np.fromiter: far cheaper than nested sequences into np.array.
-    centers = np.fromiter(chain.from_iterable(map(attrgetter("center_px"), ells)), np.float64)
-    if centers.size != 2 * m:
-        raise PoseError("every ellipse centre must be a (u, v) pair")
-    shape = np.stack(
-        [
-            np.fromiter(map(attrgetter(name), ells), np.float64, count=m)
-            for name in ("semi_major", "semi_minor", "angle", "radius")
-        ],
-        axis=-1,
-    )
-    covs = _gather_covariances([e.covariance for e in ells])
-    if min(counts) == kmax:
-        uv = centers.reshape(n, kmax, 2)
-        rows = shape.reshape(n, kmax, 4)
-        rawcov = covs.reshape(n, kmax, 5, 5)
+    n, kc = len(per_det), max(counts)
+    if min(counts) == 0:
+        raise PoseError(f"detection of code {dets[counts.index(0)].code} has no ellipses")
+    if min(counts) == kc:
+        # Circle-major order (circle 0 of every detection, then circle 1, ...): the gathered
+        # columns are already (K, N) and need no transposing copy.
+        values, covs = _ellipse_columns(list(chain.from_iterable(zip(*per_det, strict=True))))
+        values = values.reshape(6, kc, n)
+        covs = covs.reshape(5, 5, kc, n)
     else:
-        uv = np.full((n, kmax, 2), np.nan)
-        rows = np.full((n, kmax, 4), np.nan)
-        rawcov = np.full((n, kmax, 5, 5), np.nan)
+        flat_values, flat_covs = _ellipse_columns(list(chain.from_iterable(per_det)))
         det_index = np.repeat(np.arange(n), counts)
         circle_index = np.concatenate([np.arange(c) for c in counts])
-        uv[det_index, circle_index] = centers.reshape(m, 2)
-        rows[det_index, circle_index] = shape
-        rawcov[det_index, circle_index] = covs
-    a, b, angle = rows[..., 0], rows[..., 1], rows[..., 2]
-    obs = params_from_axes(uv[..., 0], uv[..., 1], a, b, angle)
-    cov = _axes_to_params_covariance(rawcov, a, b, angle)
-    return obs, cov, rows[..., 3] * outer_radius_mm
+        values = np.full((6, kc, n), np.nan)
+        values[:, circle_index, det_index] = flat_values
+        covs = np.full((5, 5, kc, n), np.nan)
+        covs[:, :, circle_index, det_index] = flat_covs.reshape(5, 5, -1)
+    obs, cov = _axes_to_params(values[:5], covs)
+    # (N, K, ...) views of the (..., K, N) memory.
+    return obs.transpose(2, 1, 0), cov.transpose(3, 2, 0, 1), values[5].T * outer_radius_mm
+
+
+def _ellipse_columns(ells: list[Ellipse]) -> tuple[F64, F64]:
+    """``(u, v, semi_major, semi_minor, angle, radius)`` ``(6, M)`` and the covariances
+    ``(25, M)`` of ``M`` ellipses, in their order (NaNs for covariances not of shape (5, 5)).
+
+    One list comprehension per attribute and ``np.fromiter`` over the lists: the cheapest way
+    from hundreds of small objects to arrays (a comprehension reads a slot faster than
+    ``map(attrgetter)``, and ``fromiter`` converts a list of floats without the shape discovery
+    ``np.array`` does).
+    """
+    m = len(ells)
+    values = np.empty((6, m))
+    centers = [e.center_px for e in ells]
+    try:
+        # Unpacking also checks that each centre is a pair.
+        values[0] = np.fromiter([u for u, _ in centers], np.float64, count=m)
+        values[1] = np.fromiter([v for _, v in centers], np.float64, count=m)
+    except (TypeError, ValueError) as err:
+        raise PoseError(f"every ellipse centre must be a (u, v) pair of numbers: {err}") from err
+    try:
+        values[2] = np.fromiter([e.semi_major for e in ells], np.float64, count=m)
+        values[3] = np.fromiter([e.semi_minor for e in ells], np.float64, count=m)
+        values[4] = np.fromiter([e.angle for e in ells], np.float64, count=m)
+        values[5] = np.fromiter([e.radius for e in ells], np.float64, count=m)
+    except (TypeError, ValueError) as err:
+        raise PoseError(f"ellipse axes, angle and radius must be numbers: {err}") from err
+    covs = _gather_covariances([e.covariance for e in ells]).reshape(m, 25)
+    # A 2-D transposing copy (entries first) is several times cheaper than the 4-D one it
+    # spares later.
+    return values, np.ascontiguousarray(covs.T)
 
 
 def _gather_covariances(covs: list[NDArray[np.float64]]) -> F64:
@@ -233,30 +253,31 @@ def _cov_or_nan(cov: object) -> F64:
     return c if c.shape == (5, 5) else np.full((5, 5), np.nan)
 
 
-def _axes_to_params_covariance(cov: F64, a: F64, b: F64, angle: F64) -> F64:
-    """Covariances of ``(u, v, a, b, angle)`` carried to ``(u, v, s11, s12, s22)``: ``J C J^T``.
+def _axes_to_params(values: F64, cov: F64) -> tuple[F64, F64]:
+    """Ellipses ``(u, v, a, b, angle)`` ``(5, K, N)`` with covariances ``(5, 5, K, N)`` as
+    ``(u, v, s11, s12, s22)`` (:func:`pose_estimator.conic_pose.params_from_axes`) with the
+    covariances carried over: ``J C J^T``.
 
-    ``cov`` is ``(N, K, 5, 5)``. ``J`` (:func:`pose_estimator.conic_pose.axes_to_params_jacobian`)
-    is the identity on the centre, so only its 3x3 shape block ``G`` is applied, blockwise, in
-    the layout :func:`estimate_arrays` works in: ``(5, 5, K, N)``.
+    ``J`` (:func:`pose_estimator.conic_pose.axes_to_params_jacobian`) is the identity on the
+    centre, so only its 3x3 shape block ``G`` is applied, blockwise.
     """
-    c, s = np.cos(angle.T), np.sin(angle.T)
-    a, b = a.T, b.T
+    u, v, a, b, angle = values
+    c, s = np.cos(angle), np.sin(angle)
     d = a - b
+    obs = np.empty(values.shape)
+    obs[0], obs[1] = u, v
+    obs[2], obs[3], obs[4] = a * c * c + b * s * s, d * c * s, a * s * s + b * c * c
     G = np.empty((3, 3, *a.shape))
     G[0, 0], G[0, 1], G[0, 2] = c * c, s * s, -2.0 * c * s * d
     G[1, 0], G[1, 1], G[1, 2] = c * s, -c * s, d * (c * c - s * s)
     G[2, 0], G[2, 1], G[2, 2] = s * s, c * c, 2.0 * c * s * d
-    C = np.ascontiguousarray(cov.transpose(2, 3, 1, 0))
-    out = np.empty((5, 5, *a.shape))
-    out[:2, :2] = C[:2, :2]
-    out[2:, :2] = np.einsum("ij...,jk...->ik...", G, C[2:, :2])
-    out[:2, 2:] = np.einsum("ij...,kj...->ik...", C[:2, 2:], G)
-    GC = np.einsum("ij...,jk...->ik...", G, C[2:, 2:])
+    out = np.empty(cov.shape)
+    out[:2, :2] = cov[:2, :2]
+    out[2:, :2] = np.einsum("ij...,jk...->ik...", G, cov[2:, :2])
+    out[:2, 2:] = np.einsum("ij...,kj...->ik...", cov[:2, 2:], G)
+    GC = np.einsum("ij...,jk...->ik...", G, cov[2:, 2:])
     out[2:, 2:] = np.einsum("ij...,kj...->ik...", GC, G)
-    # An (N, K, 5, 5) view of that memory: estimate_arrays transposes it back without a copy.
-    result: F64 = out.transpose(3, 2, 0, 1)
-    return result
+    return obs, out
 
 
 def estimate_arrays(
@@ -649,8 +670,9 @@ def _gauss_newton(
         lam_p = P * lam
         PJ = np.einsum("ijkn,jqkn->iqkn", lam_p, J)  # lam_k P J
         info = np.einsum("ipkn,iqkn->pqn", J, PJ)  # (5, 5, N), sum over circles
-        grad = np.einsum("ipkn,ikn->pn", PJ, res)  # (5, N)
-        chi2_lin = _quadratic(res, lam_p)
+        Pr = np.einsum("ijkn,jkn->ikn", lam_p, res)  # lam_k P res
+        grad = np.einsum("ipkn,ikn->pn", J, Pr)  # (5, N)
+        chi2_lin = np.einsum("ikn,ikn->n", res, Pr)
         # A tiny damping only guards against singular steps (e.g. a missing inner circle).
         damp = 1e-12 * info.trace() + 1e-300
         for i in range(5):

@@ -127,14 +127,23 @@ def test_covariance_is_calibrated(design: str, size_px: int, slant_deg: float) -
 
 
 def test_bad_inputs_are_named() -> None:
-    """A bad diameter or a non-detection raises PoseError naming the problem."""
+    """A bad diameter, a non-detection, a detection without ellipses or a malformed ellipse
+    raises PoseError naming the problem."""
+    from dataclasses import replace
+
     det = synthetic_detection(
         CAMERA, _target("ring", 10.0, (0, 0, 700.0)), 0.0, np.random.default_rng(0)
     )
     with pytest.raises(PoseError, match="diameter_mm"):
         estimate([det], CAMERA, -7.1)
     with pytest.raises(PoseError, match="FiducialDetection"):
-        estimate(["not a detection"], CAMERA, 7.1)  # type: ignore[list-item]
+        estimate([det, "not a detection"], CAMERA, 7.1)  # type: ignore[list-item]
+    with pytest.raises(PoseError, match=f"code {det.code + 1} has no ellipses"):
+        estimate([det, replace(det, code=det.code + 1, ellipses=())], CAMERA, 7.1)
+    first = det.ellipses[0]
+    for bad in (replace(first, center_px=(1.0, 2.0, 3.0)), replace(first, semi_major="wide")):
+        with pytest.raises(PoseError, match=r"centre|axes"):
+            estimate([det, replace(det, ellipses=(bad, *det.ellipses[1:]))], CAMERA, 7.1)
     assert estimate([], CAMERA, 7.1) == []
 
 
