@@ -45,17 +45,24 @@ from typing import Any
 import numpy as np
 import yaml
 from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
 
 from fiducial_detector.codebook import code_count
 from pose_estimator.types import FiducialPose
 
 from .errors import MatcherError
-from .rigid import consistent_subset, rigid_fit
+from .rigid import across_line_of_sight, consistent_subset, rigid_fit
 from .types import MatchResult, UnitMotion
 
 DEFAULT_SPAN_MM = 40.0
 DEFAULT_RIGID_TOL_MM = 3.0
 DEFAULT_OVERTURN_DEG = 90.0
+# Template faces whose normals' dot product is below this point away from each other: a unit
+# showing one of them cannot show the other too (a dolos's 4th fluke face against the other three).
+OPPOSED_DOT = -0.3
+# A baseline fiducial with a same-code fiducial now within this distance across the line of sight
+# (where one image measures precisely) is still seen in place.
+STILL_SHOWN_MM = 3.0
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -639,8 +646,11 @@ def unit_motions(
     Units come from :func:`assign_units` (or ``groups``, its earlier result). ``centres`` caches
     each unit's template-located origin across calls on the same baseline (filled in here).
     Appeared current fiducials are attached to the nearest unit that already has current
-    fiducials (or lost all of them) when their code is free on it, within the unit span: the faces
-    an overturned unit now shows.
+    fiducials (or lost all of them) when their code is free on it and its face does not point
+    away from one the unit shows, within the unit span. A face pointing away from faces a unit
+    showed before (with template normals) is evidence that the unit turned over: such faces go
+    one to one, within the matching gate, to units that lost all their old faces
+    (:func:`_overturn_evidence`).
 
     Returns
     -------
@@ -673,12 +683,31 @@ def unit_motions(
 
     # Appeared fiducials: attach to a unit whose current fiducials (or, failing that, baseline
     # position) are within the span and which does not already show that code.
+    template = unit_map.template if unit_map is not None else None
+    normals = template.normals if template is not None else {}
     appeared_of = dict.fromkeys(range(len(unit_list)), 0)
     owner_codes = None
     if unit_map is not None and unit_map.units:
         owner_codes = {c: n for n, s in enumerate(unit_map.units) for c in s.codes}
-    for d in result.by_label("appeared"):
+    has_same = {
+        n
+        for n, ks in pairs_of.items()
+        if any(result.displacements[k].label == "same_code" for k in ks)
+    }
+    appeared = result.by_label("appeared")
+    taken: set[int] = set()
+    if owner_codes is None and normals:
+        # Faces opposite to those a unit showed first: they can only be an overturned unit's.
+        for d, n in _overturn_evidence(
+            appeared, unit_list, base, cur, cur_of, has_same, normals, result.params.gate_mm
+        ):
+            cur_of[n].append(d.current_index)
+            appeared_of[n] += 1
+            taken.add(d.current_index)
+    for d in appeared:
         assert d.current_index is not None and d.after_mm is not None
+        if d.current_index in taken:
+            continue
         code = int(d.code_after or 0)
         if owner_codes is not None:
             n_own = owner_codes.get(code)
@@ -686,14 +715,19 @@ def unit_motions(
                 cur_of[n_own].append(d.current_index)
                 appeared_of[n_own] += 1
             continue
+        if template is not None and code not in template.codes:
+            continue
         best, best_d = None, span
         for n, (_, ix) in enumerate(unit_list):
-            ref = [cur[j].position_mm for j in cur_of[n]] or [base[i].position_mm for i in ix]
             codes_now = {int(cur[j].code) for j in cur_of[n]}
-            if code in codes_now or not ref:
+            if code in codes_now or _opposed(normals, code, codes_now):
+                # A rigid unit cannot show a face and the one opposite it at once.
                 continue
-            tmpl = unit_map.template if unit_map is not None else None
-            if tmpl is not None and code not in tmpl.codes:
+            if not cur_of[n] and _opposed(normals, code, {int(base[i].code) for i in ix}):
+                # Turned over: only as the evidence above weighed it.
+                continue
+            ref = [cur[j].position_mm for j in cur_of[n]] or [base[i].position_mm for i in ix]
+            if not ref:
                 continue
             dist = float(np.min(np.linalg.norm(np.asarray(ref) - d.after_mm, axis=1)))
             if dist < best_d:
@@ -703,8 +737,6 @@ def unit_motions(
             appeared_of[best] += 1
 
     out: list[UnitMotion] = []
-    template = unit_map.template if unit_map is not None else None
-    normals = template.normals if template is not None else {}
     for n, (name, ix) in enumerate(unit_list):
         before_codes = {int(base[i].code) for i in ix}
         new_codes = tuple(sorted({int(cur[j].code) for j in cur_of[n]} - before_codes))
@@ -727,6 +759,77 @@ def unit_motions(
             )
         )
     return tuple(out), tuple(unassigned)
+
+
+def _opposed(normals: Mapping[int, NDArray[np.float64]], code: int, others: Any) -> bool:
+    """Whether the template face of ``code`` points away from that of any code in ``others``."""
+    if code not in normals:
+        return False
+    return any(b in normals and float(normals[code] @ normals[b]) < OPPOSED_DOT for b in others)
+
+
+def _overturn_evidence(
+    appeared: Sequence[Any],
+    unit_list: Sequence[tuple[str, list[int]]],
+    base: tuple[FiducialPose, ...],
+    cur: tuple[FiducialPose, ...],
+    cur_of: Mapping[int, list[int]],
+    has_same: set[int],
+    normals: Mapping[int, NDArray[np.float64]],
+    gate_mm: float,
+) -> list[tuple[Any, int]]:
+    """Appeared faces opposite to those a unit showed, given one to one to the units they fit.
+
+    A face now seen whose template normal points away from the faces a unit showed before can
+    only be that unit's if it turned over, and the unit must then show none of its old faces (no
+    same-code match) nor a face that contradicts it. A unit that turned over also moved, often
+    beyond the grouping span, so the candidates are all such units within the matching gate,
+    and each face and each unit is used once: a minimum-cost assignment on the distance from the
+    unit's baseline fiducials (several nearby units may have lost their faces, an overturned one
+    among them; the nearest fit wins as a whole, not greedily).
+
+    Returns
+    -------
+    list of (Displacement, int)
+        Appeared entries with the index (into ``unit_list``) of the unit each joins.
+    """
+    rows = [d for d in appeared if d.code_after is not None and int(d.code_after) in normals]
+    cur_pos = np.array([p.position_mm for p in cur], dtype=np.float64).reshape(-1, 3)
+    cur_code = np.array([int(p.code) for p in cur], dtype=np.int64)
+
+    def still_shown(i: int) -> bool:
+        """A face of this code is still seen where baseline fiducial ``i`` was (in the image)."""
+        p = np.asarray(base[i].position_mm, dtype=np.float64)
+        near = cur_pos[cur_code == int(base[i].code)] - p
+        lateral = np.linalg.norm(across_line_of_sight(near, p), axis=-1)
+        return bool(np.any(lateral <= STILL_SHOWN_MM))
+
+    # A unit still showing an old face where it was did not turn over, whatever that face was
+    # matched to.
+    cols = [
+        n
+        for n, (_, ix) in enumerate(unit_list)
+        if ix and n not in has_same and not any(still_shown(i) for i in ix)
+    ]
+    if not rows or not cols:
+        return []
+    big = 10.0 * gate_mm
+    cost = np.full((len(rows), len(cols)), big)
+    for r, d in enumerate(rows):
+        code = int(d.code_after)
+        for c, n in enumerate(cols):
+            ix = unit_list[n][1]
+            now = {int(cur[j].code) for j in cur_of[n]}
+            if code in now or _opposed(normals, code, now):
+                continue
+            if not _opposed(normals, code, {int(base[i].code) for i in ix}):
+                continue
+            pos = np.array([base[i].position_mm for i in ix], dtype=np.float64)
+            dist = float(np.min(np.linalg.norm(pos - d.after_mm, axis=1)))
+            if dist < gate_mm:
+                cost[r, c] = dist
+    ri, ci = linear_sum_assignment(cost)
+    return [(rows[r], cols[c]) for r, c in zip(ri, ci, strict=True) if cost[r, c] < big]
 
 
 def _motion_of_unit(
@@ -763,12 +866,7 @@ def _motion_of_unit(
     turned_over = bool(ix) and not same and bool(new_codes)
     if turned_over and normals:
         old_codes = [c for c in codes if c in normals]
-        turned_over = any(
-            float(normals[a] @ normals[b]) < -0.3
-            for a in new_codes
-            if a in normals
-            for b in old_codes
-        )
+        turned_over = any(_opposed(normals, a, old_codes) for a in new_codes)
     elif turned_over:
         turned_over = len(ix) >= 2
     if len(use) == 1 and not same and not turned_over:

@@ -221,3 +221,53 @@ def test_lone_cross_code_match_does_not_displace_a_unit() -> None:
         (alone,) = [u for u in motions if u.baseline_indices == (len(units[0]),)]
         assert alone.status == "lost"
         assert sum(u.status == "still" for u in motions) == 2
+
+
+# Overturned about the shank: only code 41 faces the camera.
+FLIP = R0 @ _rot([1.0, 0.0, 0.0], 180.0)
+
+
+@pytest.mark.parametrize(
+    "move_mm",
+    [(0.0, -30.0, -20.0), (-20.0, -30.0, -10.0), (10.0, 30.0, -20.0), (-20.0, 40.0, -10.0)],
+)
+def test_overturned_unit_is_found_beyond_the_span_among_neighbours(
+    move_mm: tuple[float, float, float],
+) -> None:
+    """A unit that turned over and rolled 35-46 mm (beyond the 35 mm grouping span, lifted
+    towards the camera onto the layer) among still neighbours is reported overturned, and no
+    neighbour is: the face it now shows (code 41) points away from every face a still unit shows,
+    so it can only be the unit that lost its old faces."""
+    centres = [np.array([x, y, 1800.0]) for y in (0.0, 40.0) for x in (-45.0, 0.0, 45.0)]
+    landed = centres[1] + np.array(move_mm)
+    before = [p for c in centres for p in _unit(c, R0)]
+    after = [p for k, c in enumerate(centres) if k != 1 for p in _unit(c, R0)]
+    after += _unit(landed, FLIP)
+    assert [p.code for p in _unit(landed, FLIP)] == [41]
+    an = match_units(before, after, unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    assert len(units) == len(centres)
+    for u in units:
+        at = int(np.argmin([np.linalg.norm(c - u.reference_before_mm) for c in centres]))
+        assert u.overturned == (at == 1), (u.unit, u.status)
+        assert (u.unit in summary.displaced_ids) == (at == 1)
+
+
+def test_a_face_still_seen_in_place_vetoes_overturn() -> None:
+    """A still unit whose one face the matching left unmatched, though a fiducial of that code
+    is still seen where it was, is not taken for the unit that turned over, even when the
+    turned-over unit's new face lies nearer to it than to the faces that unit lost."""
+    a, b = np.array([0.0, 0.0, 1800.0]), np.array([45.0, 0.0, 1800.0])
+    lone = [p for p in _unit(a, R0) if p.code == 29]
+    before = lone + _unit(b, R0)
+    after = lone + _unit(b + np.array([-25.0, -10.0, -15.0]), FLIP)
+    p41 = after[-1].position_mm
+    assert np.linalg.norm(p41 - lone[0].position_mm) < min(
+        np.linalg.norm(p.position_mm - p41) for p in before[1:]
+    )
+    # Leave the still face unmatched, as a refinement pass may.
+    result = match(before, after, gate_mm=50.0, exclude_pairs=[(0, 0), (3, 0)])
+    units, _ = unit_motions(result, unit_map=UMAP)
+    by_codes = {len(u.baseline_indices): u for u in units}
+    assert not by_codes[1].overturned
+    assert by_codes[3].overturned
