@@ -777,19 +777,9 @@ def records_to_detections(records: NDArray[Any]) -> list[FiducialDetection]:
     RecordError
         For an unknown design id or an ``n_ellipses`` outside ``1..MAX_ELLIPSES``.
     """
-    recs = _as_records(DETECTION, records)
+    recs, n_ell, design = _checked_detections(records)
     slots = int(layout(DETECTION).constants["MAX_ELLIPSES"])
     names = {v: k for k, v in design_ids().items()}
-    n_ell = recs["n_ellipses"].astype(int)
-    bad = np.flatnonzero((n_ell < 1) | (n_ell > slots))
-    if bad.size:
-        raise RecordError(
-            f"{DETECTION} row {bad[0]}: n_ellipses {n_ell[bad[0]]} outside 1..{slots}"
-        )
-    design = recs["design"].astype(int).tolist()
-    unknown = [i for i, d in enumerate(design) if d not in names]
-    if unknown:
-        raise RecordError(f"{DETECTION} row {unknown[0]}: unknown design id {design[unknown[0]]}")
     covs = upper_to_covariance(recs["ellipse_covariance"].reshape(len(recs), slots, 15), 5)
     per_slot = zip(
         *(
@@ -820,6 +810,98 @@ def records_to_detections(records: NDArray[Any]) -> list[FiducialDetection]:
     return out
 
 
+def _checked_detections(records: Any) -> tuple[NDArray[Any], NDArray[np.int64], list[int]]:
+    """Detection records with valid ``n_ellipses`` and design ids: the records, ``n_ellipses``
+    and the design ids (:class:`RecordError` naming the first bad row otherwise)."""
+    recs = _as_records(DETECTION, records)
+    slots = int(layout(DETECTION).constants["MAX_ELLIPSES"])
+    n_ell = recs["n_ellipses"].astype(np.int64)
+    bad = np.flatnonzero((n_ell < 1) | (n_ell > slots))
+    if bad.size:
+        raise RecordError(
+            f"{DETECTION} row {bad[0]}: n_ellipses {n_ell[bad[0]]} outside 1..{slots}"
+        )
+    design = recs["design"].astype(int).tolist()
+    known = set(design_ids().values())
+    unknown = [i for i, d in enumerate(design) if d not in known]
+    if unknown:
+        raise RecordError(f"{DETECTION} row {unknown[0]}: unknown design id {design[unknown[0]]}")
+    return recs, n_ell, design
+
+
+def detection_ellipse_columns(
+    records: NDArray[Any],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``FiducialDetectionRecord`` rows -> the ellipse columns of
+    :func:`pose_estimator.estimate_ellipses`, without detection objects: ``(u, v, semi_major,
+    semi_minor, angle, radius)`` ``(6, K, N)`` and covariances ``(5, 5, K, N)``, NaN beyond each
+    row's ``n_ellipses`` (``K`` is the largest).
+
+    Raises
+    ------
+    RecordError
+        For an unknown design id or an ``n_ellipses`` outside ``1..MAX_ELLIPSES``.
+    """
+    recs, n_ell, _ = _checked_detections(records)
+    kc = int(n_ell.max()) if len(recs) else 1
+    names = ("ellipse_u", "ellipse_v", "semi_major", "semi_minor", "angle", "radius")
+    values = np.stack([np.asarray(recs[name][:, :kc], dtype=np.float64).T for name in names])
+    slots = int(layout(DETECTION).constants["MAX_ELLIPSES"])
+    upper = recs["ellipse_covariance"].reshape(len(recs), slots, 15)[:, :kc]
+    covs = upper_to_covariance(upper, 5).transpose(2, 3, 1, 0)
+    missing = np.arange(kc)[:, None] >= n_ell[None, :]
+    values[:, missing] = np.nan
+    covs[:, :, missing] = np.nan
+    return values, np.ascontiguousarray(covs)
+
+
+def pose_columns_to_records(
+    code: Any,
+    position_mm: Any,
+    normal: Any,
+    covariance_mm2: Any,
+    center_px: Any,
+    detection_index: Any,
+    n_frames: Any = 1,
+) -> NDArray[Any]:
+    """Pose columns -> ``FiducialPoseRecord`` structured array (the shared body of
+    :func:`poses_to_records`, and the pose node's path without pose objects).
+
+    Parameters
+    ----------
+    code : (N,) integers
+    position_mm, normal : (N, 3) arrays
+    covariance_mm2 : (N, 3, 3) array
+    center_px : (N, 2) array
+        The detection's centre ``(u, v)`` each pose came from (NaN: none).
+    detection_index : (N,) integers
+        Row of that detection in its frame's detection records (-1: none).
+    n_frames : integer or (N,) integers
+        Frames fused into each pose.
+    """
+    lay = layout(POSE)
+    try:
+        pos = np.asarray(position_mm, dtype=np.float64).reshape(-1, 3)
+        n = len(pos)
+        nrm = np.asarray(normal, dtype=np.float64).reshape(n, 3)
+        cov = np.asarray(covariance_mm2, dtype=np.float64).reshape(n, 3, 3)
+        uv = np.asarray(center_px, dtype=np.float64).reshape(n, 2)
+    except ValueError as err:
+        raise RecordError(f"poses with malformed position/normal/covariance: {err}") from err
+    out = lay.empty(n)
+    if n == 0:
+        return out
+    out["x"], out["y"], out["z"] = pos.T
+    out["nx"], out["ny"], out["nz"] = nrm.T
+    out["covariance"] = covariance_to_upper(cov)
+    out["code"] = _int_column("pose", "code", np.asarray(code).tolist(), 0, 2**32 - 1)
+    frames = np.broadcast_to(np.asarray(n_frames), (n,)).tolist()
+    out["n_frames"] = _int_column("pose", "n_frames", frames, 1, 2**32 - 1)
+    out["detection_index"] = np.asarray(detection_index).reshape(n)
+    out["u"], out["v"] = uv.T
+    return out
+
+
 def poses_to_records(
     poses: Sequence[FiducialPose], detections: Sequence[FiducialDetection] | None = None
 ) -> NDArray[Any]:
@@ -836,30 +918,21 @@ def poses_to_records(
     Stored: code, position, normal, covariance (upper triangle), n_frames, the detection's centre
     ``(u, v)`` (NaN without a detection) and ``detection_index``.
     """
-    lay = layout(POSE)
-    n = len(poses)
-    out = lay.empty(n)
-    if n == 0:
-        return out
+    if not poses:
+        return layout(POSE).empty(0)
     try:
         pos = np.array([np.reshape(p.position_mm, 3) for p in poses], dtype=np.float64)
         nrm = np.array([np.reshape(p.normal, 3) for p in poses], dtype=np.float64)
         cov = np.array([np.reshape(p.covariance_mm2, (3, 3)) for p in poses], dtype=np.float64)
     except ValueError as err:
         raise RecordError(f"poses with malformed position/normal/covariance: {err}") from err
-    out["x"], out["y"], out["z"] = pos.T
-    out["nx"], out["ny"], out["nz"] = nrm.T
-    out["covariance"] = covariance_to_upper(cov)
-    out["code"] = _int_column("pose", "code", [p.code for p in poses], 0, 2**32 - 1)
-    out["n_frames"] = _int_column("pose", "n_frames", [p.n_frames for p in poses], 1, 2**32 - 1)
     index_of = {id(d): k for k, d in enumerate(detections or ())}
-    out["detection_index"] = [
-        index_of.get(id(p.detection), -1) if p.detection is not None else -1 for p in poses
-    ]
+    index = [index_of.get(id(p.detection), -1) if p.detection is not None else -1 for p in poses]
     nan = (np.nan, np.nan)
-    uv = np.array([p.detection.center_px if p.detection is not None else nan for p in poses])
-    out["u"], out["v"] = uv.T
-    return out
+    uv = [p.detection.center_px if p.detection is not None else nan for p in poses]
+    return pose_columns_to_records(
+        [p.code for p in poses], pos, nrm, cov, uv, index, [p.n_frames for p in poses]
+    )
 
 
 def records_to_poses(

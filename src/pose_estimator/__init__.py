@@ -5,7 +5,7 @@ from __future__ import annotations
 from .camera import CameraModel
 from .conic_pose import circle_pose
 from .errors import CalibrationError, PoseError
-from .estimate import PoseArrays, estimate, estimate_arrays
+from .estimate import PoseArrays, estimate, estimate_arrays, estimate_ellipses
 from .fusion import fuse, fuse_poses
 from .types import FiducialPose
 
@@ -18,6 +18,7 @@ __all__ = [
     "circle_pose",
     "estimate",
     "estimate_arrays",
+    "estimate_ellipses",
     "fuse",
     "fuse_poses",
 ]

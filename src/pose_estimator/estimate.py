@@ -112,8 +112,8 @@ def estimate(
             raise PoseError(f"expected FiducialDetection, got {kind.__name__}")
     if not dets:
         return []
-    obs, cov, radius = detections_to_arrays(dets, 0.5 * float(diameter_mm))
-    result = estimate_arrays(obs, cov, radius, camera)
+    values, covs = detection_columns(dets)
+    result = estimate_ellipses(values, covs, 0.5 * float(diameter_mm), camera)
     pos, nrm, cvm = result.position_mm, result.normal, result.covariance_mm2
     if not result.valid.all():
         keep = np.flatnonzero(result.valid)
@@ -153,11 +153,25 @@ class PoseArrays:
 def detections_to_arrays(
     dets: Sequence[FiducialDetection], outer_radius_mm: float
 ) -> tuple[F64, F64, F64]:
-    """Observation arrays ``(N, K, 5)``, covariances ``(N, K, 5, 5)`` and radii ``(N, K)`` (mm).
+    """Observation arrays ``(N, K, 5)``, covariances ``(N, K, 5, 5)`` and radii ``(N, K)`` (mm)
+    of :func:`estimate_arrays`; missing circles (fewer ellipses than ``K``) get NaN observations.
 
-    Missing circles (fewer ellipses than ``K``) get NaN observations. The arrays returned are
-    views of memory laid out as :func:`estimate_arrays` works, ``(5, K, N)`` and
-    ``(5, 5, K, N)``, which it then uses without a copy.
+    The arrays returned are views of memory laid out as :func:`estimate_arrays` works, ``(5, K,
+    N)`` and ``(5, 5, K, N)``, which it then uses without a copy.
+
+    Raises
+    ------
+    PoseError
+        If a detection has no ellipses, an ellipse's centre is not a pair of numbers or a
+        parameter is not a number.
+    """
+    return ellipse_arrays(*detection_columns(dets), outer_radius_mm)
+
+
+def detection_columns(dets: Sequence[FiducialDetection]) -> tuple[F64, F64]:
+    """The detections' ellipses as columns: ``(u, v, semi_major, semi_minor, angle, radius)``
+    ``(6, K, N)`` and covariances ``(5, 5, K, N)`` (circle ``k`` of detection ``n`` at
+    ``[..., k, n]``; NaN where a detection has fewer than ``K`` ellipses).
 
     Raises
     ------
@@ -174,19 +188,68 @@ def detections_to_arrays(
         # Circle-major order (circle 0 of every detection, then circle 1, ...): the gathered
         # columns are already (K, N) and need no transposing copy.
         values, covs = _ellipse_columns(list(chain.from_iterable(zip(*per_det, strict=True))))
-        values = values.reshape(6, kc, n)
-        covs = covs.reshape(5, 5, kc, n)
-    else:
-        flat_values, flat_covs = _ellipse_columns(list(chain.from_iterable(per_det)))
-        det_index = np.repeat(np.arange(n), counts)
-        circle_index = np.concatenate([np.arange(c) for c in counts])
-        values = np.full((6, kc, n), np.nan)
-        values[:, circle_index, det_index] = flat_values
-        covs = np.full((5, 5, kc, n), np.nan)
-        covs[:, :, circle_index, det_index] = flat_covs.reshape(5, 5, -1)
+        return values.reshape(6, kc, n), covs.reshape(5, 5, kc, n)
+    flat_values, flat_covs = _ellipse_columns(list(chain.from_iterable(per_det)))
+    det_index = np.repeat(np.arange(n), counts)
+    circle_index = np.concatenate([np.arange(c) for c in counts])
+    values = np.full((6, kc, n), np.nan)
+    values[:, circle_index, det_index] = flat_values
+    covs = np.full((5, 5, kc, n), np.nan)
+    covs[:, :, circle_index, det_index] = flat_covs.reshape(5, 5, -1)
+    return values, covs
+
+
+def ellipse_arrays(values: F64, covs: F64, outer_radius_mm: float) -> tuple[F64, F64, F64]:
+    """:func:`estimate_arrays`' inputs from ellipse columns (see :func:`detection_columns`):
+    ``(N, K, 5)`` observations, ``(N, K, 5, 5)`` covariances and ``(N, K)`` radii in mm (views
+    of ``(..., K, N)`` memory)."""
     obs, cov = _axes_to_params(values[:5], covs)
-    # (N, K, ...) views of the (..., K, N) memory.
     return obs.transpose(2, 1, 0), cov.transpose(3, 2, 0, 1), values[5].T * outer_radius_mm
+
+
+def estimate_ellipses(
+    values: F64, covs: F64, outer_radius_mm: float, camera: CameraModel
+) -> PoseArrays:
+    """Poses straight from ellipse columns, without detection objects: the path of a node that
+    receives them as records (:func:`armourcam.records.detection_columns`).
+
+    Parameters
+    ----------
+    values : (6, K, N) ndarray
+        ``(u, v, semi_major, semi_minor, angle, radius)`` of circle ``k`` of fiducial ``n``
+        (distorted pixels; ``radius`` as a fraction of the outer radius; NaN: not fitted).
+    covs : (5, 5, K, N) ndarray
+        Covariances of ``(u, v, semi_major, semi_minor, angle)``.
+    outer_radius_mm : float
+        Printed radius of the design's radius 1.0.
+    camera : CameraModel
+
+    Returns
+    -------
+    PoseArrays
+        As :func:`estimate_arrays`; :func:`estimate` keeps the ``valid`` rows.
+    """
+    if not np.isfinite(outer_radius_mm) or outer_radius_mm <= 0:
+        raise PoseError(f"outer radius must be a positive finite number, got {outer_radius_mm!r}")
+    values = np.asarray(values, dtype=np.float64)
+    covs = np.asarray(covs, dtype=np.float64)
+    if values.ndim != 3 or values.shape[0] != 6 or covs.shape != (5, 5, *values.shape[1:]):
+        raise PoseError(
+            f"ellipse columns must be (6, K, N) and covariances (5, 5, K, N); got {values.shape}"
+            f", {covs.shape}"
+        )
+    n = values.shape[2]
+    if n == 0:  # a frame without fiducials
+        return PoseArrays(
+            np.empty((0, 3)),
+            np.empty((0, 3)),
+            np.empty((0, 3, 3)),
+            np.empty(0, dtype=bool),
+            np.empty(0),
+            np.empty((0, 2)),
+            np.empty(0),
+        )
+    return estimate_arrays(*ellipse_arrays(values, covs, outer_radius_mm), camera)
 
 
 def _ellipse_columns(ells: list[Ellipse]) -> tuple[F64, F64]:

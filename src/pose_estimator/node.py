@@ -1,9 +1,13 @@
 """ROS 2 node ``pose_estimator``: per-frame detections + camera -> per-frame 3-D fiducial poses.
 
-A thin shell around :func:`pose_estimator.estimate` (paper section 4): decode the detector's
+A thin shell around the pose estimator's core (paper section 4): decode the detector's
 ``FiducialDetectionRecord`` cloud, estimate each fiducial's position, normal and covariance in
 the camera frame, publish them as ``FiducialPoseRecord`` rows and, for viewers, as a PoseArray.
-Output headers are the input's (the image's stamp and frame_id).
+Output headers are the input's (the image's stamp and frame_id). Records go to the vectorised
+core as columns (:func:`armourcam.records.detection_ellipse_columns`,
+:func:`pose_estimator.estimate_ellipses`) and back, without per-fiducial objects: the same
+numbers as :func:`pose_estimator.estimate` on the decoded detections, a few milliseconds sooner
+on the frame's critical path.
 
 Topics
 ------
@@ -39,6 +43,7 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point, Pose, PoseArray, Quaternion
+from numpy.typing import NDArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, PointCloud2, PointField
@@ -57,8 +62,7 @@ from armourcam.graph import (
 
 from .camera import CameraModel
 from .errors import CalibrationError
-from .estimate import estimate
-from .types import FiducialPose
+from .estimate import estimate_ellipses
 
 PARAMS = (
     Param("detections_topic", "/armourcam/detections", "Input: detections (PointCloud2)."),
@@ -118,14 +122,15 @@ def normal_quaternions(normals: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def pose_array(header: Any, poses: list[FiducialPose]) -> PoseArray:
-    """PoseArray (metres) of fiducial poses (mm); orientation: +z turned onto the normal."""
+def pose_array(header: Any, position_mm: NDArray[Any], normal: NDArray[Any]) -> PoseArray:
+    """PoseArray (metres) of fiducial positions ``(N, 3)`` (mm) and unit normals ``(N, 3)``;
+    orientation: +z turned onto the normal."""
     out = PoseArray(header=header)
-    if not poses:
+    if len(position_mm) == 0:
         return out
-    # Arrays first: per-pose numpy calls would cost more than the messages themselves.
-    xyz = (np.array([p.position_mm for p in poses], dtype=np.float64) / 1000.0).tolist()
-    quat = normal_quaternions(np.array([p.normal for p in poses])).tolist()
+    # Whole arrays: per-pose numpy calls would cost more than the messages themselves.
+    xyz = (np.asarray(position_mm, dtype=np.float64).reshape(-1, 3) / 1000.0).tolist()
+    quat = normal_quaternions(np.asarray(normal, dtype=np.float64).reshape(-1, 3)).tolist()
     out.poses = [
         Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
         for (x, y, z), (qx, qy, qz, qw) in zip(xyz, quat, strict=True)
@@ -214,19 +219,30 @@ class PoseEstimatorNode(Node):
         assert self.camera is not None
         t0 = time.perf_counter()
         try:
-            dets = records.records_to_detections(records.from_pointcloud2(msg, records.DETECTION))
-            poses = estimate(dets, self.camera, self._diameter())
-            rows = records.poses_to_records(poses, dets)
+            recs = records.from_pointcloud2(msg, records.DETECTION)
+            values, covs = records.detection_ellipse_columns(recs)
+            result = estimate_ellipses(values, covs, 0.5 * self._diameter(), self.camera)
+            keep = np.flatnonzero(result.valid)
+            pos, nrm = result.position_mm[keep], result.normal[keep]
+            rows = records.pose_columns_to_records(
+                recs["code"][keep],
+                pos,
+                nrm,
+                result.covariance_mm2[keep],
+                np.column_stack([recs["u"][keep], recs["v"][keep]]),
+                keep,
+            )
         except Exception as err:
             self.dropped += 1
             kind = "" if isinstance(err, ValueError) else f"{type(err).__name__}: "
             self.last_error = f"frame dropped: {kind}{err}"
             self.get_logger().error(self.last_error)
             return
+        # The PoseArray first: it is what viewers (and the latency budget) wait for.
+        self._pub_array.publish(pose_array(msg.header, pos, nrm))
         self._pub.publish(
             records.to_pointcloud2(PointCloud2, PointField, msg.header, records.POSE, rows)
         )
-        self._pub_array.publish(pose_array(msg.header, poses))
         self.published += 1
         self.frame_times.add(1e3 * (time.perf_counter() - t0))
 

@@ -510,3 +510,47 @@ def params_from_axes_t(a: np.ndarray, b: np.ndarray, angle: np.ndarray) -> np.nd
     """Square-root shapes ``(3, N)`` of ellipses with semi-axes ``a``, ``b`` at ``angle``."""
     c, s = np.cos(angle), np.sin(angle)
     return np.stack([a * c * c + b * s * s, (a - b) * c * s, a * s * s + b * c * c])
+
+
+def test_records_path_equals_estimate_on_objects() -> None:
+    """The pose node's path (detection records -> ellipse columns -> estimate_ellipses -> pose
+    records, no objects) gives exactly the records of estimate() on the decoded detections,
+    with mixed circle counts, a dot and a degenerate row left out alike."""
+    from dataclasses import replace
+
+    from armourcam import records
+    from pose_estimator import estimate_ellipses
+
+    rng = np.random.default_rng(3)
+    dets = []
+    for k, (design, slant) in enumerate([("ring", 10.0), ("ring", 55.0), ("dot", 35.0)] * 3):
+        target = _target(design, slant, (20.0 * k - 80.0, 15.0 - 4.0 * k, 700.0 + 9.0 * k))
+        dets.append(synthetic_detection(CAMERA, target, 0.02, rng))
+    dets[4] = replace(dets[4], ellipses=dets[4].ellipses[:2])
+    flat = replace(dets[7].ellipses[0], semi_minor=0.0)  # not an ellipse: no pose
+    dets[7] = replace(dets[7], ellipses=(flat,))
+    recs = records.detections_to_records(dets)
+    decoded = records.records_to_detections(recs)
+    expected = records.poses_to_records(estimate(decoded, CAMERA, 7.1), decoded)
+
+    values, covs = records.detection_ellipse_columns(recs)
+    result = estimate_ellipses(values, covs, 3.55, CAMERA)
+    keep = np.flatnonzero(result.valid)
+    got = records.pose_columns_to_records(
+        recs["code"][keep],
+        result.position_mm[keep],
+        result.normal[keep],
+        result.covariance_mm2[keep],
+        np.column_stack([recs["u"][keep], recs["v"][keep]]),
+        keep,
+    )
+    assert 7 not in keep.tolist() and len(got) == len(dets) - 1
+    for name in expected.dtype.names:
+        np.testing.assert_array_equal(got[name], expected[name], err_msg=name)
+    none = estimate_ellipses(*records.detection_ellipse_columns(recs[:0]), 3.55, CAMERA)
+    assert none.position_mm.shape == (0, 3) and none.valid.shape == (0,)
+    recs["n_ellipses"][0] = 4
+    with pytest.raises(records.RecordError, match="n_ellipses 4"):
+        records.detection_ellipse_columns(recs)
+    with pytest.raises(PoseError, match="outer radius"):
+        estimate_ellipses(values, covs, 0.0, CAMERA)
