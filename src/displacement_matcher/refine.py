@@ -121,6 +121,7 @@ def match_units(
         cur_groups = [[cur_ok[k] for k in g] for g in found]
     excluded: set[tuple[int, int]] = set()
     passes = 1
+    last_inputs: tuple[Any, ...] | None = None
     for _ in range(refine_passes):
         pred = np.full((len(baseline), 3), np.nan)
         gate = np.full(len(baseline), np.nan)
@@ -149,6 +150,12 @@ def match_units(
             kw["groups"] = groups
             kw["centres"] = {}
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
+        inputs = (pred, gate, sorted(excluded), groups[0])
+        if last_inputs is not None and _same_inputs(inputs, last_inputs):
+            # The pass would repeat the last one exactly (same predictions, gates, exclusions
+            # and units): the matching has settled.
+            break
+        last_inputs = inputs
         result = match(
             baseline,
             current,
@@ -161,6 +168,16 @@ def match_units(
         units, unassigned = unit_motions(result, **kw)
         passes += 1
     return UnitAnalysis(result, units, unassigned, passes)
+
+
+def _same_inputs(a: tuple[Any, ...], b: tuple[Any, ...]) -> bool:
+    """Whether two passes' inputs (predictions, gates, excluded pairs, units) are identical."""
+    return (
+        np.array_equal(a[0], b[0], equal_nan=True)
+        and np.array_equal(a[1], b[1], equal_nan=True)
+        and a[2] == b[2]
+        and a[3] == b[3]
+    )
 
 
 def _merge_fragments(
