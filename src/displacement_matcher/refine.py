@@ -6,7 +6,10 @@ same-code matches agree on a motion predicts where its baseline fiducials are no
 pass measures costs from there with a tight gate across the line of sight (depth, which a single
 camera measures with heavy tails, gets slack), while pairs that contradict the current state's own
 grouping are excluded and baseline units that the current grouping shows to be one are merged.
-Every pass is still one exact global matching. Camera frame, millimetres.
+Whole units are also matched one to one to the current state's units
+(:func:`assign_unit_groups`): a unit whose faces are found together elsewhere is predicted
+there, even where single fiducials found cheaper strangers. Every pass is still one exact
+global matching. Camera frame, millimetres.
 """
 
 from __future__ import annotations
@@ -16,6 +19,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 from pose_estimator.types import FiducialPose
 
@@ -27,6 +33,7 @@ from .units import (
     DEFAULT_OVERTURN_DEG,
     DEFAULT_RIGID_TOL_MM,
     DEFAULT_SPAN_MM,
+    STILL_SHOWN_MM,
     UnitMap,
     assign_units,
     group_fiducials,
@@ -76,7 +83,10 @@ def match_units(
     measures costs from those predictions with a tight gate for them (``rigid_gate_mm`` after a
     rigid fit, ``translation_gate_mm`` after a translation, which ignores the unit's rotation).
     So a still unit's fiducial that is hidden now no longer grabs a stranger 40 mm away, and a
-    moved unit's fiducials find their new places. Each pass is still one exact global matching.
+    moved unit's fiducials find their new places. Without an explicit unit map, baseline units
+    are also matched one to one to the current state's units (:func:`assign_unit_groups`); where
+    that places a unit elsewhere than its own matches do, its fiducials are predicted there
+    (translation gate). Each pass is still one exact global matching.
 
     Parameters
     ----------
@@ -119,6 +129,7 @@ def match_units(
             [current[j] for j in cur_ok], span_mm=span, template=template, tol_mm=rigid_tol_mm
         )
         cur_groups = [[cur_ok[k] for k in g] for g in found]
+    gate_used = float(match_kw.get("gate_mm", result.params.gate_mm))
     excluded: set[tuple[int, int]] = set()
     passes = 1
     last_inputs: tuple[Any, ...] | None = None
@@ -149,6 +160,20 @@ def match_units(
             groups = (merged, groups[1])
             kw["groups"] = groups
             kw["centres"] = {}
+        if cur_groups:
+            # Whole units found in their new places (two or more faces moving together, one to
+            # one) override what single fiducials suggested where the two disagree (across the
+            # line of sight, beyond the rigid gate).
+            for ix, t in assign_unit_groups(
+                baseline, current, groups[0], cur_groups, gate_mm=gate_used, tol_mm=rigid_gate_mm
+            ):
+                for i in ix:
+                    p = np.asarray(baseline[i].position_mm, dtype=np.float64) + t
+                    off = across_line_of_sight(pred[i] - p, p)
+                    if np.all(np.isfinite(off)) and np.linalg.norm(off) <= rigid_gate_mm:
+                        continue
+                    pred[i] = p
+                    gate[i] = translation_gate_mm
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
         inputs = (pred, gate, sorted(excluded), groups[0])
         if last_inputs is not None and _same_inputs(inputs, last_inputs):
@@ -168,6 +193,158 @@ def match_units(
         units, unassigned = unit_motions(result, **kw)
         passes += 1
     return UnitAnalysis(result, units, unassigned, passes)
+
+
+def assign_unit_groups(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    base_units: Sequence[tuple[str, list[int]]],
+    cur_groups: Sequence[list[int]],
+    *,
+    gate_mm: float,
+    tol_mm: float,
+) -> list[tuple[list[int], NDArray[np.float64]]]:
+    """Baseline units matched one to one to the current state's units, by their shared codes.
+
+    Fiducial by fiducial, a moved unit loses to a still neighbour it landed on: the neighbour's
+    hidden face grabs the mover's same-code face 10-20 mm away, cheaper than the mover's own
+    30-40 mm (mostly along depth, the weakest axis of a monocular pose), and the mover's motion
+    is lost. A unit is one rigid body, and each current unit belongs to one baseline unit only:
+    a baseline unit and a current group (:func:`group_fiducials` on the current poses) are
+    candidates when at least two codes are on both and their same-code pairs agree on one
+    translation within ``tol_mm`` across the line of sight (two coherent fiducials are evidence
+    one stranger is not). Each shared fiducial is worth ``gate_mm`` (what leaving both sides of a
+    pair unmatched costs in :func:`displacement_matcher.match`) and the motion costs its length,
+    so the assignment (exact, minimum cost, each unit and group used at most once, no match
+    allowed) prefers more shared faces, then the smallest motion. A baseline unit with a face
+    still seen in place (same code within ``STILL_SHOWN_MM`` across the line of sight) did not
+    move: it takes no part, and the current unit holding that face is its own, so no other unit
+    may claim it; the mover then gets the group it moved to. (A neighbour hidden entirely is
+    not told apart from a mover by positions: the smaller motion wins, as before.) Units of one
+    fiducial are left to the fiducial matching (one face is weak evidence). Translations are
+    limited to ``2 * gate_mm`` (``gate_mm`` across the line of sight).
+
+    Parameters
+    ----------
+    baseline, current : sequence of FiducialPose
+    base_units : sequence of (str, list of int)
+        Baseline units (id, baseline indices), as from :func:`assign_units`.
+    cur_groups : sequence of list of int
+        The current state's units (current indices), as from :func:`group_fiducials`.
+    gate_mm : float
+        The matching gate (mm).
+    tol_mm : float
+        Largest disagreement (mm, across the line of sight) of a shared face with the unit's
+        translation.
+
+    Returns
+    -------
+    list of (list of int, (3,) ndarray)
+        For each assigned baseline unit, its baseline indices and its translation (camera
+        frame, mm).
+    """
+    cur_of: list[dict[int, int]] = []
+    for g in cur_groups:
+        cur_of.append({int(current[j].code): j for j in g})
+    cpos = np.array(
+        [np.mean([current[j].position_mm for j in g], axis=0) for g in cur_groups]
+    ).reshape(-1, 3)
+    if not len(cpos) or not base_units:
+        return []
+    tree = cKDTree(cpos)
+    # Baseline fiducials with a same-code fiducial still seen where they were (in the image,
+    # where one camera measures precisely): their unit did not move, whatever its neighbours
+    # now show around it, and the current unit holding that face is its own (one to one: no
+    # other baseline unit may claim it). Such units are left to the fiducial matching.
+    cur_all = np.array([p.position_mm for p in current], dtype=np.float64).reshape(-1, 3)
+    cur_ok = np.all(np.isfinite(cur_all), axis=1) & (np.linalg.norm(cur_all, axis=1) > 0)
+    cur_idx = np.flatnonzero(cur_ok)
+    rays = cKDTree(cur_all[cur_idx] / np.linalg.norm(cur_all[cur_idx], axis=1)[:, None])
+
+    def still_shown(i: int) -> int | None:
+        """The current fiducial still showing baseline fiducial ``i`` in place, if any."""
+        p = np.asarray(baseline[i].position_mm, dtype=np.float64)
+        r = float(np.linalg.norm(p))
+        if not (np.isfinite(r) and r > 0):
+            return None
+        for k in rays.query_ball_point(p / r, 2.0 * STILL_SHOWN_MM / r):
+            j = int(cur_idx[k])
+            if int(current[j].code) != int(baseline[i].code):
+                continue
+            if np.linalg.norm(across_line_of_sight(cur_all[j] - p, p)) <= STILL_SHOWN_MM:
+                return j
+        return None
+
+    group_of = {j: c for c, g in enumerate(cur_groups) for j in g}
+    still_units: set[int] = set()
+    owned: set[int] = set()
+    for n, (_, ix) in enumerate(base_units):
+        for i in ix:
+            j = still_shown(i)
+            if j is not None:
+                still_units.add(n)
+                if j in group_of:
+                    owned.add(group_of[j])
+
+    rows: list[int] = []
+    cols: list[int] = []
+    costs: list[float] = []
+    motions: list[NDArray[np.float64]] = []
+    for n, (_, ix) in enumerate(base_units):
+        if len(ix) < 2 or n in still_units:
+            continue
+        bpos = np.array([baseline[i].position_mm for i in ix], dtype=np.float64)
+        centre = bpos.mean(axis=0)
+        for c in tree.query_ball_point(centre, 2.0 * gate_mm + DEFAULT_SPAN_MM):
+            if c in owned:
+                continue
+            shared = [
+                (i, cur_of[c][int(baseline[i].code)])
+                for i in ix
+                if int(baseline[i].code) in cur_of[c]
+            ]
+            if len(shared) < 2:
+                continue
+            v = np.array(
+                [
+                    np.asarray(current[j].position_mm, dtype=np.float64)
+                    - np.asarray(baseline[i].position_mm, dtype=np.float64)
+                    for i, j in shared
+                ]
+            )
+            t = v.mean(axis=0)
+            spread = np.linalg.norm(across_line_of_sight(v - t, centre), axis=1)
+            if np.max(spread) > tol_mm:
+                continue
+            length = float(np.linalg.norm(t))
+            lateral = float(np.linalg.norm(across_line_of_sight(t, centre)))
+            if length > 2.0 * gate_mm or lateral > gate_mm:
+                continue
+            rows.append(n)
+            cols.append(c)
+            costs.append(length - gate_mm * len(shared))
+            motions.append(t)
+    if not rows:
+        return []
+    ur = sorted(set(rows))
+    uc = sorted(set(cols))
+    rpos = {n: k for k, n in enumerate(ur)}
+    cpos_k = {c: k for k, c in enumerate(uc)}
+    # Square matrix with a no-match column per row (cost 0) so every unit may stay unassigned.
+    big = 1e9
+    cost = np.full((len(ur), len(uc) + len(ur)), big)
+    cost[:, len(uc) :] = np.where(np.eye(len(ur), dtype=bool), 0.0, big)
+    which: dict[tuple[int, int], int] = {}
+    for k, (n, c, x) in enumerate(zip(rows, cols, costs, strict=True)):
+        cost[rpos[n], cpos_k[c]] = x
+        which[(rpos[n], cpos_k[c])] = k
+    ri, ci = linear_sum_assignment(cost)
+    out: list[tuple[list[int], NDArray[np.float64]]] = []
+    for r, c in zip(ri.tolist(), ci.tolist(), strict=True):
+        hit = which.get((r, c))
+        if hit is not None:
+            out.append((list(base_units[ur[r]][1]), motions[hit]))
+    return out
 
 
 def _same_inputs(a: tuple[Any, ...], b: tuple[Any, ...]) -> bool:
@@ -242,7 +419,10 @@ def _unit_conflicts(
 
     When one current unit's fiducials are matched to several baseline units, the baseline unit
     with most of them is that unit; pairs into it from baseline units with fewer are wrong (a
-    still unit's hidden fiducial grabbing a moved neighbour's newly visible one, say).
+    still unit's hidden fiducial grabbing a moved neighbour's newly visible one, say). A tie
+    rules nothing out: one claim each cannot tell a hidden still unit's grab from a mover that
+    landed beside a still neighbour (the current grouping then joins the two; seen on the
+    bundled session bag, where preferring the claim still in place discarded a true 40 mm move).
     """
     unit_of = {i: n for n, (_, ix) in enumerate(base_units) for i in ix}
     pair_of: dict[int, int] = {

@@ -271,3 +271,46 @@ def test_a_face_still_seen_in_place_vetoes_overturn() -> None:
     by_codes = {len(u.baseline_indices): u for u in units}
     assert not by_codes[1].overturned
     assert by_codes[3].overturned
+
+
+@pytest.mark.parametrize(
+    ("move_mm", "offset_mm", "turn_deg"),
+    [
+        ((10.0, 15.0, -35.0), (-15.0, 0.0, 0.0), 300.0),
+        ((5.0, 10.0, -38.0), (-15.0, 0.0, 0.0), 300.0),
+        ((-7.7, 15.6, -34.0), (15.0, 0.0, 0.0), 0.0),
+        ((0.0, 20.0, -30.0), (0.0, -15.0, 0.0), 0.0),
+    ],
+)
+def test_moved_unit_keeps_its_motion_beside_a_revealed_face(
+    move_mm: tuple[float, float, float],
+    offset_mm: tuple[float, float, float],
+    turn_deg: float,
+) -> None:
+    """A unit showing two faces moves about 1.9 Dn, mostly in depth; a still neighbour's face
+    of the same code, hidden before, shows now 15 mm from where the mover's face was.
+
+    Fiducial by fiducial that face is the cheaper partner of the mover's (15 mm against
+    38 mm), and the mover's motion is lost or under-estimated. Both its faces are found
+    together in one current unit with one translation, while the neighbour still shows its old
+    faces in place (that current unit is its own): the mover is displaced by its true motion,
+    the neighbour is still, and the count is exact.
+    """
+    move = np.array(move_mm)
+    m = np.array([0.0, 0.0, 1800.0])
+    rn = _rot([0.0, 0.0, 1.0], turn_deg) @ R0
+    g3 = GEO.positions_mm[list(GEO.codes).index(3)]
+    n = m + R0 @ g3 + np.array(offset_mm) - rn @ g3
+    mover_before = [p for p in _unit(m, R0) if p.code in (3, 29)]
+    neighbour_after = _unit(n, rn)
+    assert 3 in [p.code for p in neighbour_after]
+    neighbour_before = [p for p in neighbour_after if p.code != 3]  # hidden by the mover
+    base = mover_before + neighbour_before
+    cur = neighbour_after + _unit(m + move, R0)
+    an = match_units(base, cur, unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    assert summary.displaced_units == 1
+    mover = next(u for u in units if u.baseline_indices == (0, 1))
+    assert mover.status == "displaced"
+    np.testing.assert_allclose(mover.translation_mm, move, atol=1.0)
+    assert all(u.status == "still" for u in units if u is not mover)
