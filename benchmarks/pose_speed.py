@@ -6,7 +6,7 @@ that only the pose stage is timed: ``pose_estimator.estimate(detections, camera,
 (gathering the detections' ellipses into arrays included), and its vectorised core
 ``estimate_arrays`` alone, with an ideal lens and with plumb_bob distortion, and the pose node's
 own path: the frame's detection records to pose records through the same core, without
-per-fiducial objects (:func:`pose_estimator.estimate_ellipses`). Target: <= 5 ms for 400
+per-fiducial objects (:func:`armourcam.records.estimate_pose_records`). Target: <= 5 ms for 400
 detections.
 
 Run: ``.venv/bin/python -m benchmarks.pose_speed [--repeat 50]``.
@@ -26,7 +26,7 @@ from armourcam import records
 from armourcam.render import Target, rotation_from_slant_tilt, target_truth
 from fiducial_detector.design import RING
 from fiducial_detector.types import Ellipse, FiducialDetection
-from pose_estimator import CameraModel, estimate, estimate_arrays, estimate_ellipses
+from pose_estimator import CameraModel, estimate, estimate_arrays
 from pose_estimator.conic_pose import axes_from_params, params_from_conic
 from pose_estimator.estimate import detections_to_arrays
 
@@ -87,18 +87,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def node_path() -> np.ndarray:
         """What the pose node does with a frame's records (the ROS messages aside)."""
-        values, covs = records.detection_ellipse_columns(recs)
-        result = estimate_ellipses(values, covs, 3.55, ideal)
-        keep = np.flatnonzero(result.valid)
-        uv = np.column_stack([recs["u"][keep], recs["v"][keep]])
-        return records.pose_columns_to_records(
-            recs["code"][keep],
-            result.position_mm[keep],
-            result.normal[keep],
-            result.covariance_mm2[keep],
-            uv,
-            keep,
-        )
+        return records.estimate_pose_records(recs, ideal, 7.1)
 
     print(
         f"# pose_speed: {N} ring detections (3 circles each), best / median of {args.repeat} runs"

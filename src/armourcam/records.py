@@ -54,6 +54,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fiducial_detector.types import Ellipse, FiducialDetection
+from pose_estimator.camera import CameraModel
+from pose_estimator.estimate import estimate_ellipses
 from pose_estimator.types import FiducialPose
 
 MSG_DIR = Path(__file__).resolve().parent / "msg"
@@ -900,6 +902,33 @@ def pose_columns_to_records(
     out["detection_index"] = np.asarray(detection_index).reshape(n)
     out["u"], out["v"] = uv.T
     return out
+
+
+def estimate_pose_records(
+    detection_records: NDArray[Any], camera: CameraModel, diameter_mm: float
+) -> NDArray[Any]:
+    """One frame's ``FiducialDetectionRecord`` rows -> its ``FiducialPoseRecord`` rows, through
+    :func:`pose_estimator.estimate_ellipses` and columns only (no per-fiducial objects): the
+    pose node's stage. The same rows as :func:`poses_to_records` of :func:`pose_estimator.estimate`
+    on the decoded detections; ``detection_index`` is each pose's detection row.
+
+    Raises
+    ------
+    RecordError
+        For malformed detection records (see :func:`detection_ellipse_columns`).
+    """
+    recs = _as_records(DETECTION, detection_records)
+    values, covs = detection_ellipse_columns(recs)
+    result = estimate_ellipses(values, covs, 0.5 * float(diameter_mm), camera)
+    keep = np.flatnonzero(result.valid)
+    return pose_columns_to_records(
+        recs["code"][keep],
+        result.position_mm[keep],
+        result.normal[keep],
+        result.covariance_mm2[keep],
+        np.column_stack([recs["u"][keep], recs["v"][keep]]),
+        keep,
+    )
 
 
 def poses_to_records(

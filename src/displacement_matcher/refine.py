@@ -33,10 +33,10 @@ from .units import (
     DEFAULT_OVERTURN_DEG,
     DEFAULT_RIGID_TOL_MM,
     DEFAULT_SPAN_MM,
-    STILL_SHOWN_MM,
     UnitMap,
     assign_units,
     group_fiducials,
+    still_in_place,
     unit_motions,
 )
 
@@ -217,9 +217,8 @@ def assign_unit_groups(
     pair unmatched costs in :func:`displacement_matcher.match`) and the motion costs its length,
     so the assignment (exact, minimum cost, each unit and group used at most once, no match
     allowed) prefers more shared faces, then the smallest motion. A baseline unit with a face
-    still seen in place (same code within ``STILL_SHOWN_MM`` across the line of sight) did not
-    move: it takes no part, and the current unit holding that face is its own, so no other unit
-    may claim it; the mover then gets the group it moved to. (A neighbour hidden entirely is
+    still seen in place (:func:`.units.still_in_place`) did not move: it takes no part, and the
+    current unit holding that face is its own, so no other unit may claim it; the mover then gets the group it moved to. (A neighbour hidden entirely is
     not told apart from a mover by positions: the smaller motion wins, as before.) Units of one
     fiducial are left to the fiducial matching (one face is weak evidence). Translations are
     limited to ``2 * gate_mm`` (``gate_mm`` across the line of sight).
@@ -256,35 +255,10 @@ def assign_unit_groups(
     # where one camera measures precisely): their unit did not move, whatever its neighbours
     # now show around it, and the current unit holding that face is its own (one to one: no
     # other baseline unit may claim it). Such units are left to the fiducial matching.
-    cur_all = np.array([p.position_mm for p in current], dtype=np.float64).reshape(-1, 3)
-    cur_ok = np.all(np.isfinite(cur_all), axis=1) & (np.linalg.norm(cur_all, axis=1) > 0)
-    cur_idx = np.flatnonzero(cur_ok)
-    rays = cKDTree(cur_all[cur_idx] / np.linalg.norm(cur_all[cur_idx], axis=1)[:, None])
-
-    def still_shown(i: int) -> int | None:
-        """The current fiducial still showing baseline fiducial ``i`` in place, if any."""
-        p = np.asarray(baseline[i].position_mm, dtype=np.float64)
-        r = float(np.linalg.norm(p))
-        if not (np.isfinite(r) and r > 0):
-            return None
-        for k in rays.query_ball_point(p / r, 2.0 * STILL_SHOWN_MM / r):
-            j = int(cur_idx[k])
-            if int(current[j].code) != int(baseline[i].code):
-                continue
-            if np.linalg.norm(across_line_of_sight(cur_all[j] - p, p)) <= STILL_SHOWN_MM:
-                return j
-        return None
-
+    shown = still_in_place(baseline, current)
     group_of = {j: c for c, g in enumerate(cur_groups) for j in g}
-    still_units: set[int] = set()
-    owned: set[int] = set()
-    for n, (_, ix) in enumerate(base_units):
-        for i in ix:
-            j = still_shown(i)
-            if j is not None:
-                still_units.add(n)
-                if j in group_of:
-                    owned.add(group_of[j])
+    still_units = {n for n, (_, ix) in enumerate(base_units) if any(i in shown for i in ix)}
+    owned = {group_of[j] for j in shown.values() if j in group_of}
 
     rows: list[int] = []
     cols: list[int] = []

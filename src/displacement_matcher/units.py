@@ -51,7 +51,7 @@ from fiducial_detector.codebook import code_count
 from pose_estimator.types import FiducialPose
 
 from .errors import MatcherError
-from .rigid import across_line_of_sight, consistent_subset, rigid_fit
+from .rigid import consistent_subset, rigid_fit
 from .types import MatchResult, UnitMotion
 
 DEFAULT_SPAN_MM = 40.0
@@ -761,6 +761,31 @@ def unit_motions(
     return tuple(out), tuple(unassigned)
 
 
+def still_in_place(
+    baseline: Sequence[FiducialPose], current: Sequence[FiducialPose]
+) -> dict[int, int]:
+    """Baseline fiducials whose face is still seen where it was: baseline index -> the current
+    fiducial of the same code within :data:`STILL_SHOWN_MM` of it across the line of sight
+    (where one image measures precisely; the nearest such), whatever the matching paired."""
+    bpos = np.array([p.position_mm for p in baseline], dtype=np.float64).reshape(-1, 3)
+    cpos = np.array([p.position_mm for p in current], dtype=np.float64).reshape(-1, 3)
+    bcode = np.array([int(p.code) for p in baseline], dtype=np.int64)
+    ccode = np.array([int(p.code) for p in current], dtype=np.int64)
+    out: dict[int, int] = {}
+    for code in np.intersect1d(bcode, ccode).tolist():
+        bi, cj = np.flatnonzero(bcode == code), np.flatnonzero(ccode == code)
+        ray = bpos[bi] / np.maximum(np.linalg.norm(bpos[bi], axis=1), 1e-12)[:, None]
+        v = cpos[cj][None, :, :] - bpos[bi][:, None, :]
+        along = np.einsum("bcd,bd->bc", v, ray)
+        with np.errstate(invalid="ignore"):
+            lateral = np.linalg.norm(v - along[..., None] * ray[:, None, :], axis=2)
+            lateral = np.where(np.isfinite(lateral), lateral, np.inf)
+        best = np.argmin(lateral, axis=1)
+        for k in np.flatnonzero(lateral[np.arange(len(bi)), best] <= STILL_SHOWN_MM).tolist():
+            out[int(bi[k])] = int(cj[best[k]])
+    return out
+
+
 def _opposed(normals: Mapping[int, NDArray[np.float64]], code: int, others: Any) -> bool:
     """Whether the template face of ``code`` points away from that of any code in ``others``."""
     if code not in normals:
@@ -794,24 +819,17 @@ def _overturn_evidence(
         Appeared entries with the index (into ``unit_list``) of the unit each joins.
     """
     rows = [d for d in appeared if d.code_after is not None and int(d.code_after) in normals]
-    cur_pos = np.array([p.position_mm for p in cur], dtype=np.float64).reshape(-1, 3)
-    cur_code = np.array([int(p.code) for p in cur], dtype=np.int64)
-
-    def still_shown(i: int) -> bool:
-        """A face of this code is still seen where baseline fiducial ``i`` was (in the image)."""
-        p = np.asarray(base[i].position_mm, dtype=np.float64)
-        near = cur_pos[cur_code == int(base[i].code)] - p
-        lateral = np.linalg.norm(across_line_of_sight(near, p), axis=-1)
-        return bool(np.any(lateral <= STILL_SHOWN_MM))
-
+    if not rows:
+        return []
     # A unit still showing an old face where it was did not turn over, whatever that face was
     # matched to.
+    shown = still_in_place(base, cur)
     cols = [
         n
         for n, (_, ix) in enumerate(unit_list)
-        if ix and n not in has_same and not any(still_shown(i) for i in ix)
+        if ix and n not in has_same and not any(i in shown for i in ix)
     ]
-    if not rows or not cols:
+    if not cols:
         return []
     big = 10.0 * gate_mm
     cost = np.full((len(rows), len(cols)), big)

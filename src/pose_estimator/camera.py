@@ -333,7 +333,7 @@ def _newton_undistort(
             fx += 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
             fy += p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
         resid = np.abs(fx) + np.abs(fy)
-        if resid.max() < 1e-14:
+        if resid.max(initial=0.0) < 1e-14:  # (an empty batch has converged)
             break
         j11, j12, j22 = _jacobian(x, y, xx, yy, xy, rad, drad, coeffs)
         inv_det = 1.0 / (j11 * j22 - j12 * j12)

@@ -238,17 +238,6 @@ def estimate_ellipses(
             f"ellipse columns must be (6, K, N) and covariances (5, 5, K, N); got {values.shape}"
             f", {covs.shape}"
         )
-    n = values.shape[2]
-    if n == 0:  # a frame without fiducials
-        return PoseArrays(
-            np.empty((0, 3)),
-            np.empty((0, 3)),
-            np.empty((0, 3, 3)),
-            np.empty(0, dtype=bool),
-            np.empty(0),
-            np.empty((0, 2)),
-            np.empty(0),
-        )
     return estimate_arrays(*ellipse_arrays(values, covs, outer_radius_mm), camera)
 
 

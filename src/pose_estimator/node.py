@@ -4,10 +4,9 @@ A thin shell around the pose estimator's core (paper section 4): decode the dete
 ``FiducialDetectionRecord`` cloud, estimate each fiducial's position, normal and covariance in
 the camera frame, publish them as ``FiducialPoseRecord`` rows and, for viewers, as a PoseArray.
 Output headers are the input's (the image's stamp and frame_id). Records go to the vectorised
-core as columns (:func:`armourcam.records.detection_ellipse_columns`,
-:func:`pose_estimator.estimate_ellipses`) and back, without per-fiducial objects: the same
-numbers as :func:`pose_estimator.estimate` on the decoded detections, a few milliseconds sooner
-on the frame's critical path.
+core as columns and back (:func:`armourcam.records.estimate_pose_records`), without
+per-fiducial objects: the same numbers as :func:`pose_estimator.estimate` on the decoded
+detections, a few milliseconds sooner on the frame's critical path.
 
 Topics
 ------
@@ -62,7 +61,6 @@ from armourcam.graph import (
 
 from .camera import CameraModel
 from .errors import CalibrationError
-from .estimate import estimate_ellipses
 
 PARAMS = (
     Param("detections_topic", "/armourcam/detections", "Input: detections (PointCloud2)."),
@@ -122,15 +120,15 @@ def normal_quaternions(normals: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def pose_array(header: Any, position_mm: NDArray[Any], normal: NDArray[Any]) -> PoseArray:
-    """PoseArray (metres) of fiducial positions ``(N, 3)`` (mm) and unit normals ``(N, 3)``;
-    orientation: +z turned onto the normal."""
+def pose_array(header: Any, rows: NDArray[Any]) -> PoseArray:
+    """PoseArray (metres) of ``FiducialPoseRecord`` rows (mm); orientation: +z turned onto the
+    normal."""
     out = PoseArray(header=header)
-    if len(position_mm) == 0:
+    if len(rows) == 0:
         return out
-    # Whole arrays: per-pose numpy calls would cost more than the messages themselves.
-    xyz = (np.asarray(position_mm, dtype=np.float64).reshape(-1, 3) / 1000.0).tolist()
-    quat = normal_quaternions(np.asarray(normal, dtype=np.float64).reshape(-1, 3)).tolist()
+    # Whole columns: per-pose numpy calls would cost more than the messages themselves.
+    xyz = (np.column_stack([rows["x"], rows["y"], rows["z"]]) / 1000.0).tolist()
+    quat = normal_quaternions(np.column_stack([rows["nx"], rows["ny"], rows["nz"]])).tolist()
     out.poses = [
         Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
         for (x, y, z), (qx, qy, qz, qw) in zip(xyz, quat, strict=True)
@@ -220,18 +218,7 @@ class PoseEstimatorNode(Node):
         t0 = time.perf_counter()
         try:
             recs = records.from_pointcloud2(msg, records.DETECTION)
-            values, covs = records.detection_ellipse_columns(recs)
-            result = estimate_ellipses(values, covs, 0.5 * self._diameter(), self.camera)
-            keep = np.flatnonzero(result.valid)
-            pos, nrm = result.position_mm[keep], result.normal[keep]
-            rows = records.pose_columns_to_records(
-                recs["code"][keep],
-                pos,
-                nrm,
-                result.covariance_mm2[keep],
-                np.column_stack([recs["u"][keep], recs["v"][keep]]),
-                keep,
-            )
+            rows = records.estimate_pose_records(recs, self.camera, self._diameter())
         except Exception as err:
             self.dropped += 1
             kind = "" if isinstance(err, ValueError) else f"{type(err).__name__}: "
@@ -239,7 +226,7 @@ class PoseEstimatorNode(Node):
             self.get_logger().error(self.last_error)
             return
         # The PoseArray first: it is what viewers (and the latency budget) wait for.
-        self._pub_array.publish(pose_array(msg.header, pos, nrm))
+        self._pub_array.publish(pose_array(msg.header, rows))
         self._pub.publish(
             records.to_pointcloud2(PointCloud2, PointField, msg.header, records.POSE, rows)
         )

@@ -533,17 +533,8 @@ def test_records_path_equals_estimate_on_objects() -> None:
     decoded = records.records_to_detections(recs)
     expected = records.poses_to_records(estimate(decoded, CAMERA, 7.1), decoded)
 
-    values, covs = records.detection_ellipse_columns(recs)
-    result = estimate_ellipses(values, covs, 3.55, CAMERA)
-    keep = np.flatnonzero(result.valid)
-    got = records.pose_columns_to_records(
-        recs["code"][keep],
-        result.position_mm[keep],
-        result.normal[keep],
-        result.covariance_mm2[keep],
-        np.column_stack([recs["u"][keep], recs["v"][keep]]),
-        keep,
-    )
+    got = records.estimate_pose_records(recs, CAMERA, 7.1)
+    keep = got["detection_index"]
     assert 7 not in keep.tolist() and len(got) == len(dets) - 1
     for name in expected.dtype.names:
         np.testing.assert_array_equal(got[name], expected[name], err_msg=name)
@@ -553,4 +544,4 @@ def test_records_path_equals_estimate_on_objects() -> None:
     with pytest.raises(records.RecordError, match="n_ellipses 4"):
         records.detection_ellipse_columns(recs)
     with pytest.raises(PoseError, match="outer radius"):
-        estimate_ellipses(values, covs, 0.0, CAMERA)
+        estimate_ellipses(*records.detection_ellipse_columns(recs[1:]), 0.0, CAMERA)
