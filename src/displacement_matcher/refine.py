@@ -218,10 +218,11 @@ def assign_unit_groups(
     so the assignment (exact, minimum cost, each unit and group used at most once, no match
     allowed) prefers more shared faces, then the smallest motion. A baseline unit with a face
     still seen in place (:func:`.units.still_in_place`) did not move: it takes no part, and the
-    current unit holding that face is its own, so no other unit may claim it; the mover then gets the group it moved to. (A neighbour hidden entirely is
-    not told apart from a mover by positions: the smaller motion wins, as before.) Units of one
-    fiducial are left to the fiducial matching (one face is weak evidence). Translations are
-    limited to ``2 * gate_mm`` (``gate_mm`` across the line of sight).
+    current unit holding that face is its own, so no other unit may claim it; the mover then
+    gets the group it moved to. (A neighbour hidden entirely is not told apart from a mover by
+    positions: the smaller motion wins, as before.) Units of one fiducial are left to the
+    fiducial matching (one face is weak evidence). Translations are limited to ``2 * gate_mm``
+    (``gate_mm`` across the line of sight).
 
     Parameters
     ----------
