@@ -33,10 +33,13 @@ from .units import (
     DEFAULT_OVERTURN_DEG,
     DEFAULT_RIGID_TOL_MM,
     DEFAULT_SPAN_MM,
+    STILL_SHOWN_MM,
     UnitMap,
+    UnitSpec,
     assign_units,
     group_fiducials,
     still_in_place,
+    template_pose,
     unit_motions,
 )
 
@@ -70,7 +73,7 @@ def match_units(
     span_mm: float | None = None,
     rigid_tol_mm: float = DEFAULT_RIGID_TOL_MM,
     overturn_deg: float = DEFAULT_OVERTURN_DEG,
-    refine_passes: int = 2,
+    refine_passes: int = 3,
     rigid_gate_mm: float = 8.0,
     translation_gate_mm: float = 15.0,
     depth_slack_mm: float = 100.0,
@@ -95,7 +98,9 @@ def match_units(
     span_mm, rigid_tol_mm, overturn_deg
         See :func:`unit_motions`.
     refine_passes : int
-        Unit-aware passes after the first (0 for the plain matching).
+        Unit-aware passes after the first (0 for the plain matching). A pass that rules out a
+        pair (a neighbour's face, :func:`_neighbour_faces_taken`) can free a fiducial whose
+        unit's motion the next pass then measures; passes stop early once one would repeat.
     rigid_gate_mm, translation_gate_mm : float
         Gates of predicted fiducials (across the line of sight).
     depth_slack_mm : float
@@ -175,6 +180,8 @@ def match_units(
                     pred[i] = p
                     gate[i] = translation_gate_mm
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
+        if template is not None:
+            excluded |= _neighbour_faces_taken(result, units, template, span)
         inputs = (pred, gate, sorted(excluded), groups[0])
         if last_inputs is not None and _same_inputs(inputs, last_inputs):
             # The pass would repeat the last one exactly (same predictions, gates, exclusions
@@ -420,3 +427,85 @@ def _unit_conflicts(
             if o != winners[0]:
                 out.add((i, j))
     return out
+
+
+def _neighbour_faces_taken(
+    result: MatchResult, units: Sequence[UnitMotion], template: UnitSpec, span_mm: float
+) -> set[tuple[int, int]]:
+    """Single-fiducial moves onto a still neighbour's own face.
+
+    A unit whose motion rests on one same-code match can have taken a face of a neighbour that
+    the neighbour did not show before (hidden then, or not detected): typically a still unit
+    whose faces were all covered during the run by a unit that came to rest in front of it,
+    its fiducial grabbing the neighbour's 20-45 mm away. Where a neighbour within ``span_mm``
+    is seen in place (every one of its matches still, across the line of sight) and the
+    template fits its current fiducials together with the taken one (:func:`template_pose`:
+    positions within 5 mm RMS, normals within 30 deg), the fiducial is that neighbour's newly
+    seen face and the pair is ruled out. A mover that landed beside a neighbour keeps its
+    claim unless its face sits exactly where one of the neighbour's would
+    (:func:`_fits_template`).
+    """
+    base, cur = result.baseline, result.current
+    match_of = {
+        int(d.baseline_index): int(d.current_index)
+        for d in result.displacements
+        if d.is_match and d.baseline_index is not None and d.current_index is not None
+    }
+
+    def moved(i: int) -> bool:
+        before = np.asarray(base[i].position_mm, dtype=np.float64)
+        after = np.asarray(cur[match_of[i]].position_mm, dtype=np.float64)
+        return bool(np.linalg.norm(across_line_of_sight(after - before, before)) > STILL_SHOWN_MM)
+
+    still = [
+        v
+        for v in units
+        if not v.overturned
+        and v.current_indices
+        and any(i in match_of for i in v.baseline_indices)
+        and not any(moved(i) for i in v.baseline_indices if i in match_of)
+    ]
+    out: set[tuple[int, int]] = set()
+    for u in units:
+        if u.n_matched != 1:
+            continue
+        claims = [i for i in u.baseline_indices if i in match_of]
+        if len(claims) != 1 or not moved(claims[0]):
+            continue
+        i = claims[0]
+        j = match_of[i]
+        taken = cur[j]
+        pos = np.asarray(taken.position_mm, dtype=np.float64)
+        for v in still:
+            if v.unit == u.unit or j in v.current_indices:
+                continue
+            shown = [cur[k] for k in v.current_indices]
+            if int(taken.code) in {int(p.code) for p in shown}:
+                continue
+            near = np.linalg.norm(np.array([p.position_mm for p in shown]) - pos, axis=1)
+            if not np.min(near) <= span_mm:
+                continue
+            if _fits_template([*shown, taken], template):
+                out.add((i, j))
+                break
+    return out
+
+
+def _fits_template(poses: Sequence[FiducialPose], template: UnitSpec) -> bool:
+    """Whether the poses are one unit's faces: the template fitted to them
+    (:func:`template_pose`) places every one within :data:`STILL_SHOWN_MM` of its measured
+    position across the line of sight, where one image measures precisely (the fit's own
+    5 mm RMS bound would let two faces misfit by 10 mm: too loose to call a fiducial a
+    neighbour's face)."""
+    fit = template_pose(poses, template)
+    if fit is None:
+        return False
+    R, t = fit
+    for p in poses:
+        if int(p.code) not in template.positions_mm:
+            return False
+        at = R @ np.asarray(template.positions_mm[int(p.code)], dtype=np.float64) + t
+        seen = np.asarray(p.position_mm, dtype=np.float64)
+        if np.linalg.norm(across_line_of_sight(seen - at, seen)) > STILL_SHOWN_MM:
+            return False
+    return True

@@ -491,7 +491,7 @@ def _template_branches(
     R, t, n_used = _branch_fit(local, seen, w, n_local, normals)
     if np.any(np.einsum("ki,ki->k", n_local @ R.T, n_used) < np.cos(np.radians(30.0))):
         return None
-    # The points must fit too (as in _unit_centre): a stranger among them makes any branch
+    # The points must fit too (as in template_pose): a stranger among them makes any branch
     # choice meaningless.
     if np.sqrt(np.mean(np.sum((local @ R.T + t - seen) ** 2, axis=1))) > 5.0:
         return None
@@ -529,8 +529,11 @@ def _pair_normals(
     return out_b, out_a
 
 
-def _unit_centre(poses: Sequence[FiducialPose], template: UnitSpec) -> NDArray[np.float64] | None:
-    """The unit's own origin in the camera frame, from the template fitted to its fiducials.
+def template_pose(
+    poses: Sequence[FiducialPose], template: UnitSpec
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """Where the unit is: ``(R, t)`` with ``position = R @ template position + t`` (camera frame),
+    from the template fitted to its fiducials.
 
     Needs template positions for >= 3 of them, or >= 2 with normals on both sides; None when
     the fit is impossible or poor (RMS above 5 mm, or a normal more than 30 deg off: a grouping
@@ -548,7 +551,7 @@ def _unit_centre(poses: Sequence[FiducialPose], template: UnitSpec) -> NDArray[n
         n_local = np.array([template.normals[int(p.code)] for p in sel])
         # Each pose's normal may be on the wrong branch of the circle's two-fold ambiguity: the
         # branches that fit the template best are used; a normal still far off means a grouping
-        # mistake, and then the template cannot be trusted to locate the unit's origin.
+        # mistake, and then the template cannot be trusted to locate the unit.
         R, t, n_used = _branch_fit(local, seen, w, n_local, n_seen)
         if np.any(np.einsum("ki,ki->k", n_local @ R.T, n_used) < np.cos(np.radians(30.0))):
             return None
@@ -558,7 +561,7 @@ def _unit_centre(poses: Sequence[FiducialPose], template: UnitSpec) -> NDArray[n
         return None
     if np.sqrt(np.mean(np.sum((local @ R.T + t - seen) ** 2, axis=1))) > 5.0:
         return None
-    return np.asarray(t, dtype=np.float64)
+    return np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
 
 
 def _centre_of(
@@ -573,7 +576,8 @@ def _centre_of(
         return None
     if cache is not None and name in cache:
         return cache[name]
-    centre = _unit_centre([base[i] for i in ix], unit_map.template)
+    fit = template_pose([base[i] for i in ix], unit_map.template)
+    centre = None if fit is None else fit[1]
     if cache is not None:
         cache[name] = centre
     return centre

@@ -314,3 +314,36 @@ def test_moved_unit_keeps_its_motion_beside_a_revealed_face(
     assert mover.status == "displaced"
     np.testing.assert_allclose(mover.translation_mm, move, atol=1.0)
     assert all(u.status == "still" for u in units if u is not mover)
+
+
+@pytest.mark.parametrize("faces_fit", [True, False])
+def test_covered_still_unit_does_not_take_a_still_neighbours_new_face(faces_fit: bool) -> None:
+    """A still unit whose faces were all covered during the run (a mover came to rest in front)
+    next to a still neighbour that now shows a face it did not show before (code 29, hidden
+    then): the covered unit's code-29 fiducial, 45 mm away, is the only partner in the gate.
+
+    Where the template fits the neighbour's faces with that one, it is the neighbour's face:
+    the covered unit is lost, not displaced, and nothing is displaced. A same-code fiducial
+    that is not where the neighbour's face would be (15 mm off across the line of sight) keeps
+    the lone claim (a unit seen through one fiducial that moved 2 Dn).
+    """
+    a, b = _row(2)
+    covered = [p for p in _unit(a, R0) if p.code in (3, 29)]
+    neighbour_after = [p for p in _unit(b, R0) if p.code in (3, 29)]
+    if not faces_fit:
+        p29 = next(p for p in neighbour_after if p.code == 29)
+        off = p29.position_mm + np.array([0.0, 15.0, 0.0])
+        neighbour_after = [p for p in neighbour_after if p.code != 29] + [
+            FiducialPose(29, off, p29.normal, p29.covariance_mm2)
+        ]
+    neighbour_before = [p for p in neighbour_after if p.code != 29]
+    base = covered + neighbour_before
+    an = match_units(base, neighbour_after, unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    lone = next(u for u in units if set(u.baseline_indices) == {0, 1})
+    if faces_fit:
+        assert summary.displaced_units == 0
+        assert lone.status == "lost"
+    else:
+        assert lone.status == "displaced" and lone.n_matched == 1
+    assert all(u.status == "still" for u in units if u is not lone)
