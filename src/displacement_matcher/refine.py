@@ -141,9 +141,18 @@ def match_units(
     for _ in range(refine_passes):
         pred = np.full((len(baseline), 3), np.nan)
         gate = np.full(len(baseline), np.nan)
+        pair_of = {
+            int(d.baseline_index): int(d.current_index)
+            for d in result.displacements
+            if d.is_match and d.baseline_index is not None and d.current_index is not None
+        }
+        # Units whose motion is one pair's own offset: (baseline, current) of that pair.
+        lone: dict[int, int] = {}
         for u in units:
             if u.overturned:
                 continue
+            if u.n_matched == 1:
+                lone.update((i, pair_of[i]) for i in u.baseline_indices if i in pair_of)
             if u.method == "none" or u.n_matched == 0:
                 # Nothing matched. A unit of several fiducials may have moved far and lost its
                 # partners to a wrong first guess: it searches the full gate again. A lone
@@ -180,6 +189,7 @@ def match_units(
                     pred[i] = p
                     gate[i] = translation_gate_mm
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
+        excluded |= _contested_lone_pairs(baseline, current, units, pred, lone)
         if template is not None:
             excluded |= _neighbour_faces_taken(result, units, template, span)
         inputs = (pred, gate, sorted(excluded), groups[0])
@@ -509,3 +519,41 @@ def _fits_template(poses: Sequence[FiducialPose], template: UnitSpec) -> bool:
         if np.linalg.norm(across_line_of_sight(seen - at, seen)) > STILL_SHOWN_MM:
             return False
     return True
+
+
+def _contested_lone_pairs(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    units: Sequence[UnitMotion],
+    pred: NDArray[np.float64],
+    lone: dict[int, int],
+) -> set[tuple[int, int]]:
+    """Lone pairs whose current fiducial another unit's own evidence places there.
+
+    A unit measured through one pair predicts that pair's fiducial exactly (its motion is the
+    pair's offset), which confirms the pair whatever it is. Where another unit's fiducial of
+    the same code is predicted from independent evidence (its unit's other matches) within
+    :data:`STILL_SHOWN_MM` of that current fiducial across the line of sight, the fiducial is
+    that one's: typically a mover that came to rest in front of a still unit, whose face the
+    covered unit's same-code fiducial had taken. A pair seen in place is never contested.
+    """
+    if not lone:
+        return set()
+    unit_of = {i: n for n, u in enumerate(units) for i in u.baseline_indices}
+    rows = [
+        k for k in range(len(pred)) if k not in lone and k in unit_of and np.isfinite(pred[k]).all()
+    ]
+    out: set[tuple[int, int]] = set()
+    for i, j in lone.items():
+        pos = np.asarray(current[j].position_mm, dtype=np.float64)
+        before = np.asarray(baseline[i].position_mm, dtype=np.float64)
+        if np.linalg.norm(across_line_of_sight(pos - before, before)) <= STILL_SHOWN_MM:
+            continue  # a face seen in place is its own evidence
+        code = int(current[j].code)
+        for k in rows:
+            if unit_of[k] == unit_of.get(i) or int(baseline[k].code) != code:
+                continue
+            if np.linalg.norm(across_line_of_sight(pos - pred[k], pos)) <= STILL_SHOWN_MM:
+                out.add((i, j))
+                break
+    return out

@@ -347,3 +347,26 @@ def test_covered_still_unit_does_not_take_a_still_neighbours_new_face(faces_fit:
     else:
         assert lone.status == "displaced" and lone.n_matched == 1
     assert all(u.status == "still" for u in units if u is not lone)
+
+
+def test_mover_keeps_its_face_from_the_unit_it_came_to_rest_in_front_of() -> None:
+    """A unit moves 42 mm and comes to rest in front of a still unit, covering it. The still
+    unit's code-29 fiducial is nearer the mover's new code-29 face (33 mm) than the mover's own
+    (42 mm), so the first matching gives it to the still unit; each unit's motion is then that
+    one pair's offset, and each predicts the face exactly. The mover's prediction rests on its
+    other face (code 17): the face is the mover's, the covered unit is lost, not displaced,
+    and the mover is displaced by its true motion, measured on both faces.
+    """
+    a, m = np.array([0.0, 0.0, 1800.0]), np.array([45.0, 0.0, 1800.0])
+    move = np.array([-30.0, 0.0, -30.0])
+    covered = [p for p in _unit(a, R0) if p.code in (3, 29)]
+    mover_before = [p for p in _unit(m, R0) if p.code in (17, 29)]
+    mover_after = [p for p in _unit(m + move, R0) if p.code in (17, 29)]
+    an = match_units(covered + mover_before, mover_after, unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    mover = next(u for u in units if set(u.baseline_indices) == {2, 3})
+    still = next(u for u in units if set(u.baseline_indices) == {0, 1})
+    assert summary.displaced_units == 1
+    assert mover.status == "displaced" and mover.n_matched == 2
+    np.testing.assert_allclose(mover.translation_mm, move, atol=1.0)
+    assert still.status == "lost"
