@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 from . import __version__, commands
 from .blas import one_blas_thread
+from .heap import keep_freed_memory
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit status."""
     one_blas_thread()  # before any command imports numpy
+    keep_freed_memory()  # per-frame temporaries stay in the process (armourcam.heap)
     args = build_parser().parse_args(argv)
     try:
         status = args.func(args)

@@ -40,6 +40,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from .blas import one_blas_thread
+from .heap import keep_freed_memory
 
 QOS_NAMES = ("reliable", "sensor_data")
 NODE_NAMES = ("fiducial_detector", "pose_estimator", "displacement_matcher")
@@ -295,6 +296,7 @@ def _run_nodes(
     the process with status 2 and a one-line error, before any topic is touched.
     """
     use_dds_profile()
+    keep_freed_memory()  # per-frame temporaries stay in the process (armourcam.heap)
     rclpy.init(args=list(argv))
     executor = make_executor()
     nodes: list[Node] = []

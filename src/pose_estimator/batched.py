@@ -14,15 +14,20 @@ from numpy.typing import NDArray
 F64 = NDArray[np.float64]
 
 
-def spd_inverse(A: F64) -> F64:
+def spd_inverse(A: F64, *, overwrite: bool = False) -> F64:
     """Inverses of a stack of symmetric positive-definite matrices ``(m, m, ...)``.
 
     Gauss-Jordan elimination without pivoting, which is stable for symmetric positive-definite
     matrices (as Cholesky is). Singular or indefinite matrices give non-finite or meaningless
-    entries: callers check.
+    entries: callers check. With ``overwrite`` a C-contiguous float64 ``A`` is inverted in place
+    and returned (for callers done with it: a stack of thousands of matrices is worth not
+    copying).
     """
     m = A.shape[0]
-    B = np.array(A, dtype=np.float64, order="C")
+    if overwrite and A.dtype == np.float64 and A.flags.c_contiguous and A.flags.writeable:
+        B = A
+    else:
+        B = np.array(A, dtype=np.float64, order="C")
     with np.errstate(divide="ignore", invalid="ignore"):
         for k in range(m):
             p = 1.0 / B[k, k]

@@ -19,6 +19,9 @@ known radius fixes ``k``. The two signs are the two-fold ambiguity of a single c
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -177,23 +180,47 @@ def circle_params(center: ArrayLike, normal: ArrayLike, radius: ArrayLike) -> F6
     return np.moveaxis(circle_params_t(c, n, r), 0, -1)
 
 
+#: Image ellipses of circles as :func:`circle_image_t` gives them: the components ``(u, v, s11,
+#: s12, s22)``, the intermediates ``(1 / q, m11, m12, m22)`` (``M = S^2``) and where the image is
+#: no real ellipse.
+CircleImage = tuple[tuple[F64, F64, F64, F64, F64], tuple[F64, F64, F64, F64], NDArray[np.bool_]]
+
+
 def circle_params_t(center: F64, normal: F64, radius: F64) -> F64:
     """:func:`circle_params` with the component axes first.
 
     ``center``, ``normal`` ``(3, ...)`` and ``radius`` ``(...)`` give ``(5, ...)``.
     """
-    comps, _, bad = _circle_image(center, normal, radius * radius)
+    return image_params_t(_circle_image(center, normal, radius * radius))
+
+
+def image_params_t(image: CircleImage) -> F64:
+    """The parameters ``(5, ...)`` of circle images (:func:`circle_image_t`), NaN where the
+    image is no real ellipse: :func:`circle_params_t` of the same circles."""
+    comps, _, bad = image
     return _stacked_first(comps, bad)
 
 
-def _circle_image(
-    c: F64, n: F64, r2: F64
-) -> tuple[tuple[F64, F64, F64, F64, F64], tuple[F64, F64, F64, F64], NDArray[np.bool_]]:
-    """Image ellipses of circles (see :func:`circle_params`), elementwise over ``r2 = r^2``.
+def map_image(image: CircleImage, part: Callable[[NDArray[Any]], NDArray[Any]]) -> CircleImage:
+    """``part`` (an indexing or a selection, the same for all) of each array of ``image``."""
+    (u, v, s11, s12, s22), (inv_q, m11, m12, m22), bad = image
+    return (
+        (part(u), part(v), part(s11), part(s12), part(s22)),
+        (part(inv_q), part(m11), part(m12), part(m22)),
+        part(bad),
+    )
 
-    Returns the components ``(u, v, s11, s12, s22)``, the intermediates ``(1 / q, m11, m12,
-    m22)`` (``M = S^2``) and where the image is no real ellipse.
-    """
+
+def circle_image_t(center: F64, normal: F64, radius: F64) -> CircleImage:
+    """Image ellipses of circles, components first (``center``, ``normal`` ``(3, ...)``,
+    ``radius`` ``(...)``), with the intermediates :func:`circle_params_jacobian_t` reuses:
+    for callers that need both the predictions and, later, the Jacobian of some of them."""
+    return _circle_image(center, normal, radius * radius)
+
+
+def _circle_image(c: F64, n: F64, r2: F64) -> CircleImage:
+    """Image ellipses of circles (see :func:`circle_params`), elementwise over ``r2 = r^2``
+    (see :data:`CircleImage`)."""
     cx, cy, cz = c[0], c[1], c[2]
     nx, ny, nz = n[0], n[1], n[2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -213,7 +240,14 @@ def _circle_image(
 
 
 def circle_params_jacobian_t(
-    center: F64, normal: F64, radius: F64, e1: F64, e2: F64, *, scale: bool = False
+    center: F64,
+    normal: F64,
+    radius: F64,
+    e1: F64,
+    e2: F64,
+    *,
+    scale: bool = False,
+    image: CircleImage | None = None,
 ) -> tuple[F64, F64]:
     """:func:`circle_params_t` and its analytic Jacobian, components first.
 
@@ -228,6 +262,9 @@ def circle_params_jacobian_t(
         directions.
     scale : bool
         Add a sixth column, the derivative with respect to ``log r`` of each circle.
+    image : CircleImage, optional
+        :func:`circle_image_t` of the same circles (``(K, N)`` arrays), when the caller has it:
+        it is not computed again.
 
     Returns
     -------
@@ -256,31 +293,35 @@ def circle_params_jacobian_t(
     """
     c, n = center, normal
     r2 = radius * radius
-    (u, v, s11, s12, s22), (inv_q, m11, m12, m22), bad = _circle_image(c, n, r2)
+    if image is None:
+        image = _circle_image(c, n, r2)
+    (u, v, s11, s12, s22), (inv_q, m11, m12, m22), bad = image
     cx, cy, cz = c[0], c[1], c[2]
     nx, ny, nz = n[0], n[1], n[2]
     m = 6 if scale else 5
     shape = (m, *r2.shape)
-    # Changes of a (2 components), q and B (3 entries) along each direction.
-    dax, day, dq = np.zeros(shape), np.zeros(shape), np.zeros(shape)
-    db11, db12, db22 = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+    # Changes of a (2 components), q and B (3 entries) along each direction, in one buffer and
+    # written in place (every allocation and copy of these arrays is a numpy call of its own).
+    dax, day, dq, db11, db12, db22 = np.zeros((6, *shape))
     dax[0], db11[0], db12[0] = cz, -2.0 * cx, -cy
     day[1], db12[1], db22[1] = cz, -cx, -2.0 * cy
     dax[2], day[2], dq[2] = cx, cy, 2.0 * cz
     # Both tilt directions at once: (2, 1, N) components broadcast against r2 (K, N).
     ex, ey, ez = np.stack((e1, e2), axis=1)[:, :, None]
-    dax[3:5] = r2 * (ex * nz + nx * ez)
-    day[3:5] = r2 * (ey * nz + ny * ez)
-    dq[3:5] = r2 * (2.0 * nz * ez)
-    db11[3:5] = r2 * (-2.0 * ex * nx)
-    db12[3:5] = r2 * -(ex * ny + nx * ey)
-    db22[3:5] = r2 * (-2.0 * ey * ny)
+    np.multiply(r2, ex * nz + nx * ez, out=dax[3:5])
+    np.multiply(r2, ey * nz + ny * ez, out=day[3:5])
+    np.multiply(r2, 2.0 * nz * ez, out=dq[3:5])
+    np.multiply(r2, -2.0 * ex * nx, out=db11[3:5])
+    np.multiply(r2, -(ex * ny + nx * ey), out=db12[3:5])
+    np.multiply(r2, -2.0 * ey * ny, out=db22[3:5])
     if scale:
         r2x2 = 2.0 * r2
-        dax[5], day[5] = r2x2 * (nx * nz), r2x2 * (ny * nz)
-        dq[5] = r2x2 * (nz * nz - 1.0)
-        db11[5], db22[5] = r2x2 * (1.0 - nx * nx), r2x2 * (1.0 - ny * ny)
-        db12[5] = r2x2 * -(nx * ny)
+        np.multiply(r2x2, nx * nz, out=dax[5])
+        np.multiply(r2x2, ny * nz, out=day[5])
+        np.multiply(r2x2, nz * nz - 1.0, out=dq[5])
+        np.multiply(r2x2, 1.0 - nx * nx, out=db11[5])
+        np.multiply(r2x2, 1.0 - ny * ny, out=db22[5])
+        np.multiply(r2x2, -(nx * ny), out=db12[5])
     jac = np.empty((5, *shape))
     with np.errstate(divide="ignore", invalid="ignore"):
         du = np.multiply(dax - u * dq, inv_q, out=jac[0])
@@ -289,7 +330,8 @@ def circle_params_jacobian_t(
         dm11 = (db11 - dq * (m11 - u * u)) * inv_q + du * (2.0 * u)
         dm12 = (db12 - dq * (m12 - u * v)) * inv_q + du * v + u * dv
         dm22 = (db22 - dq * (m22 - v * v)) * inv_q + dv * (2.0 * v)
-        jac[2:] = sqrtm_diff(m11, m12, m22, s11, s12, s22, dm11, dm12, dm22)
+        # Straight into the Jacobian, without a (3, m, K, N) temporary and its copy.
+        sqrtm_diff(m11, m12, m22, s11, s12, s22, dm11, dm12, dm22, out=jac[2:])
     params = np.empty((5, *r2.shape))
     params[0], params[1], params[2], params[3], params[4] = u, v, s11, s12, s22
     if bad.any():
@@ -299,10 +341,20 @@ def circle_params_jacobian_t(
 
 
 def sqrtm_diff(
-    m11: F64, m12: F64, m22: F64, s11: F64, s12: F64, s22: F64, dm11: F64, dm12: F64, dm22: F64
+    m11: F64,
+    m12: F64,
+    m22: F64,
+    s11: F64,
+    s12: F64,
+    s22: F64,
+    dm11: F64,
+    dm12: F64,
+    dm22: F64,
+    *,
+    out: F64 | None = None,
 ) -> F64:
     """Change ``(3, ...)`` ``(ds11, ds12, ds22)`` of the symmetric square roots ``S`` of 2x2
-    SPD matrices ``M`` along ``dM`` (entries elementwise).
+    SPD matrices ``M`` along ``dM`` (entries elementwise), written to ``out`` if given.
 
     ``S = (M + sqrt(det M) I) / t`` with ``t = sqrt(tr M + 2 sqrt(det M))`` (``t = tr S``,
     ``sqrt(det M) = det S``), differentiated as written.
@@ -312,7 +364,8 @@ def sqrtm_diff(
     droot = (dm11 * m22 + m11 * dm22 - 2.0 * m12 * dm12) * (0.5 / root)
     dt = (dm11 + dm22 + 2.0 * droot) * (0.5 * inv_t)
     ds11 = dm11 + droot - s11 * dt
-    out = np.empty((3, *np.shape(ds11)))
+    if out is None:
+        out = np.empty((3, *np.shape(ds11)))
     np.multiply(ds11, inv_t, out=out[0])
     np.multiply(dm12 - s12 * dt, inv_t, out=out[1])
     np.multiply(dm22 + droot - s22 * dt, inv_t, out=out[2])
@@ -672,7 +725,7 @@ def _fit_normalised(u: F64, v: F64) -> tuple[F64, F64, F64, F64]:
     shift = 1e-13 * (M[0, 0] + M[1, 1] + M[2, 2] + M[3, 3] + M[4, 4] + M[5, 5])
     for i in range(6):
         M[i, i] += shift
-    Minv = spd_inverse(M)
+    Minv = spd_inverse(M, overwrite=True)
     c = np.empty((6, *X.shape[1:]))
     c[:] = np.array([1.0, 0.0, 1.0, 0.0, 0.0, -1.0]).reshape(6, *([1] * (c.ndim - 1)))
     for _ in range(4):

@@ -45,11 +45,14 @@ from fiducial_detector.types import Ellipse, FiducialDetection
 from .batched import spd_inverse
 from .camera import CameraModel
 from .conic_pose import (
+    CircleImage,
+    circle_image_t,
     circle_params_jacobian_t,
-    circle_params_t,
     circle_pose_t,
     ellipse_offsets_t,
     fit_ellipse_params_t,
+    image_params_t,
+    map_image,
     plane_basis,
     sqrtm_diff,
 )
@@ -392,10 +395,6 @@ def estimate_arrays(
     everything = bool(present.all())
     safe_obs = obs_t if everything else np.where(present, obs_t, _NOMINAL_ELLIPSE)
     safe_r = r_t if everything else np.where(present, r_t, 1.0)
-    # Work in normalised coordinates (K = I): an affine change of the observations.
-    obs_n, W = _to_normalised(safe_obs, _information(cov_t), K)
-    if not everything:
-        W = np.where(present, W, 0.0)
     # The ambiguity test uses the fits' own covariances (the inner circles' geometry relative to
     # the pose circle is what tells the candidates apart); the refinement adds the systematic
     # floor to the inner circles, as a scalar deflation (sigma^2 / (sigma^2 + floor^2)).
@@ -404,6 +403,12 @@ def estimate_arrays(
         c = cov_t[:, :, 1:]
         var = (c[0, 0] + c[1, 1] + c[2, 2] + c[3, 3] + c[4, 4]) / 5.0
         lam[1:] = var / (var + inner_floor_px**2)
+    # Work in normalised coordinates (K = I): an affine change of the observations. (The
+    # covariances are inverted in place: cov_t is not used after this.)
+    obs_n, W = _to_normalised(safe_obs, _information(cov_t), K)
+    del cov_t
+    if not everything:
+        W = np.where(present, W, 0.0)
     # Closed form from the pose circle (index 0), both candidates: (3, 2, N).
     centers, normals = circle_pose_t(obs_n[:, 0], safe_r[0])
     valid = present[0] & np.isfinite(centers).all(axis=(0, 1))
@@ -412,10 +417,10 @@ def estimate_arrays(
     # Both fit the pose circle exactly (to rounding), so only the other circles, which tell
     # them apart, enter their chi-square. Likelihood weights: a decisive chi2 gap gives (1, 0),
     # a single circle or a fronto-parallel view ~ 0.5.
-    if kc > 1:
-        chi2_cf = _chi2(obs_n[:, 1:], W[:, :, 1:], safe_r[1:], centers, normals)  # (2, N)
-    else:
-        chi2_cf = np.zeros((2, n))
+    # The images of every circle of both candidates, (2, K, N): the inner circles' for the test,
+    # and the chosen candidate's are the refinement's first prediction (not computed twice).
+    image = circle_image_t(centers[:, :, None], normals[:, :, None], safe_r)
+    chi2_cf = _chi2(obs_n[:, 1:], W[:, :, 1:], image) if kc > 1 else np.zeros((2, n))  # (2, N)
     dchi = chi2_cf[1] - chi2_cf[0]
     w0 = 1.0 / (1.0 + np.exp(np.clip(-0.5 * dchi, -700.0, 700.0)))
     best = np.where(w0 >= 0.5, 0, 1)
@@ -430,8 +435,11 @@ def estimate_arrays(
     keep[0] = True
     if small.any():
         lam = np.where(small, 0.0, lam)
+    chosen = best == 0
+    first = map_image(image, lambda a: np.where(chosen, a[0], a[1]))  # (K, N) arrays
     if not keep.all():
         obs_n, W, lam, safe_r = obs_n[:, keep], W[:, :, keep], lam[keep], safe_r[keep]
+        first = map_image(first, lambda a: a[keep])
     c_best, normal, cov_c, chi2 = _gauss_newton(
         obs_n,
         W,
@@ -441,6 +449,7 @@ def estimate_arrays(
         normals[:, best, idx],
         iterations,
         free_scale,
+        first_image=first,
     )
     cov_best = 0.5 * (cov_c + np.swapaxes(cov_c, 0, 1))  # (3, 3, N)
     c = centers.copy()
@@ -471,11 +480,12 @@ _NOMINAL_ELLIPSE = np.array([0.0, 0.0, 1.0, 0.0, 1.0])[:, None, None]
 
 def _to_normalised(obs: F64, W: F64, K: F64) -> tuple[F64, F64]:
     """Ellipse parameters ``(5, ...)`` and information matrices ``(5, 5, ...)`` in normalised
-    coordinates ``K^-1 (u, v, 1)``."""
+    coordinates ``K^-1 (u, v, 1)``. ``W`` (the caller's own) may be scaled in place."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     shifted = obs - np.array([cx, cy, 0.0, 0.0, 0.0]).reshape(5, *([1] * (obs.ndim - 1)))
     if fx == fy:
-        return shifted / fx, W * (fx * fx)
+        W *= fx * fx
+        return shifted / fx, W
     A = np.diag([1.0 / fx, 1.0 / fy]).reshape(2, 2, *([1] * (obs.ndim - 1)))
     Jinv = _inverse_affine_jacobian(_affine_params_jacobian(shifted, A))
     W_n = np.einsum("ji...,jk...->ik...", Jinv, np.einsum("ij...,jk...->ik...", W, Jinv))
@@ -513,6 +523,13 @@ def _sanitise_covariance(cov: F64, present: NDArray[np.bool_]) -> F64:
     out = np.add(cov, np.swapaxes(cov, 0, 1), out=np.empty(cov.shape))
     out *= 0.5
     diag = out.reshape(25, *out.shape[2:])[::6]
+    # The usual case (every covariance usable) is settled by two whole-array tests, without
+    # the per-matrix masks.
+    if present.all() and np.isfinite(out).all() and (diag > 0).all():
+        floor = 1e-9 * np.sum(diag, axis=0)
+        for i in range(5):
+            out[i, i] += floor
+        return out
     good = np.isfinite(out).all(axis=(0, 1)) & (diag > 0).all(axis=0) & present
     floor = 1e-9 * np.sum(diag, axis=0, where=good)
     if not good.all():
@@ -525,12 +542,15 @@ def _sanitise_covariance(cov: F64, present: NDArray[np.bool_]) -> F64:
 
 
 def _information(cov: F64) -> F64:
-    """Inverse covariances ``(5, 5, ...)``; the nominal one where one is not positive definite."""
-    W = spd_inverse(cov)
+    """Inverse covariances ``(5, 5, ...)``; the nominal one where one is not positive definite.
+
+    ``cov`` (the caller's own) is inverted in place when it is C-contiguous float64.
+    """
+    W = spd_inverse(cov, overwrite=True)
     diag = W.reshape(25, *W.shape[2:])[::6]
-    good = np.isfinite(W).all(axis=(0, 1)) & (diag > 0).all(axis=0)
-    if good.all():
+    if np.isfinite(W).all() and (diag > 0).all():  # the usual case, without per-matrix masks
         return W
+    good = np.isfinite(W).all(axis=(0, 1)) & (diag > 0).all(axis=0)
     nominal = np.eye(5).reshape(5, 5, *([1] * (W.ndim - 2))) / DEFAULT_SIGMA_PX**2
     out: F64 = np.where(good, W, nominal)
     return out
@@ -629,13 +649,14 @@ def _affine_params_jacobian(p: F64, A: F64) -> F64:
     return J
 
 
-def _chi2(obs: F64, W: F64, radius: F64, center: F64, normal: F64) -> F64:
-    """Weighted squared residual over the given circles of both candidate poses.
+def _chi2(obs: F64, W: F64, image: CircleImage) -> F64:
+    """Weighted squared residual over circles ``1..K-1`` of both candidate poses.
 
-    ``obs`` ``(5, K, N)``, ``W`` ``(5, 5, K, N)``, ``radius`` ``(K, N)``, ``center`` and
-    ``normal`` ``(3, 2, N)``; returns ``(2, N)``.
+    ``obs`` ``(5, K-1, N)`` and ``W`` ``(5, 5, K-1, N)`` of those circles; ``image`` of all
+    ``K`` circles of both candidates (``(2, K, N)`` arrays, :func:`circle_image_t`); returns
+    ``(2, N)``.
     """
-    pred = circle_params_t(center[:, :, None], normal[:, :, None], radius)  # (5, 2, K, N)
+    pred = image_params_t(map_image(image, lambda a: a[:, 1:]))  # (5, 2, K-1, N)
     res = obs[:, None] - pred
     if not np.isfinite(res.sum()):  # degenerate predictions contribute nothing
         res = np.where(np.isfinite(res), res, 0.0)
@@ -660,6 +681,7 @@ def _gauss_newton(
     normal: F64,
     iterations: int,
     free_scale: bool = True,
+    first_image: CircleImage | None = None,
 ) -> tuple[F64, F64, F64, F64]:
     """Refine circle centres and normals (``(3, N)``) against all circles of each fiducial.
 
@@ -681,6 +703,9 @@ def _gauss_newton(
     full problem with the scales (``P W^-1 P = P``), at the cost of 5x5 instead of
     ``(4 + K)``-square systems.
 
+    ``first_image`` is the circles' image at the start (:func:`circle_image_t` of ``center``,
+    ``normal`` and ``radius``, ``(K, N)`` arrays) when the caller has it.
+
     Returns centres ``(3, N)``, normals ``(3, N)``, the covariances of the centres ``(3, 3, N)``
     and the final weighted chi-square ``(N,)``.
     """
@@ -695,11 +720,13 @@ def _gauss_newton(
     # product would only add rounding, amplified by A's condition), fiducial by fiducial.
     plain = ((lam == 0.0) | (lam == 1.0)).all(axis=0)
     all_plain = bool(plain.all())
+    image = first_image
     for _ in range(iterations):
         e1, e2 = (np.stack(e) for e in plane_basis((n[0], n[1], n[2])))
         # Predicted ellipses and their analytic Jacobian (exact to rounding; the forward
         # differences used before were good to ~1e-3 in the covariance at worst).
-        base, jac = circle_params_jacobian_t(c, n, rad, e1, e2, scale=extra)  # (5, m, K, N)
+        base, jac = circle_params_jacobian_t(c, n, rad, e1, e2, scale=extra, image=image)
+        image = None  # later iterations start from new centres, normals and radii
         J = jac[:, :5]  # centre and normal columns
         res = obs - base
         # Each circle's own scale column (none for the pose circle, whose radius is known).
@@ -707,19 +734,23 @@ def _gauss_newton(
         if extra:
             ds = jac[:, 5]  # (5, K, N)
             ds[:, 0] = 0.0
-        check = res.sum() + J.sum() + (0.0 if ds is None else ds.sum())
+        check = res.sum() + jac.sum()  # (one pass over the contiguous whole, ds included)
         if not np.isfinite(check):  # degenerate predictions contribute nothing
             J = np.where(np.isfinite(J), J, 0.0)
             res = np.where(np.isfinite(res), res, 0.0)
             ds = None if ds is None else np.where(np.isfinite(ds), ds, 0.0)
-        P = W
         if ds is not None:
             Wd = np.einsum("ij...,j...->i...", W, ds)  # (5, K, N)
             alpha = np.einsum("i...,i...->...", ds, Wd)  # (K, N)
             with np.errstate(divide="ignore"):
                 inv_alpha = np.where(alpha > 0, 1.0 / alpha, 0.0)
-            P = W - Wd[:, None] * (Wd * inv_alpha)[None]
-        lam_p = P * lam
+            # P and lam P in one (5, 5, K, N) buffer, in place: for 400 fiducials each such
+            # array is 240 KB, whose allocation and fresh pages cost as much as the arithmetic.
+            P = np.multiply(Wd[:, None], (Wd * inv_alpha)[None])
+            np.subtract(W, P, out=P)
+            lam_p = np.multiply(P, lam, out=P)
+        else:
+            lam_p = W * lam
         PJ = np.einsum("ijkn,jqkn->iqkn", lam_p, J)  # lam_k P J
         info = np.einsum("ipkn,iqkn->pqn", J, PJ)  # (5, 5, N), sum over circles
         Pr = np.einsum("ijkn,jkn->ikn", lam_p, res)  # lam_k P res
@@ -729,7 +760,7 @@ def _gauss_newton(
         damp = 1e-12 * info.trace() + 1e-300
         for i in range(5):
             info[i, i] += damp
-        inv_info = spd_inverse(info)
+        inv_info = spd_inverse(info, overwrite=True)
         delta = np.einsum("pq...,q...->p...", inv_info, grad)
         if all_plain:
             cov = inv_info[:3, :3]

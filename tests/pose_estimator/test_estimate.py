@@ -422,8 +422,10 @@ def _central_difference_jacobian(
     e2: np.ndarray,
     *,
     scale: bool = False,
+    image: object = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The refinement's Jacobian by central differences (stand-in for the analytic one)."""
+    """The refinement's Jacobian by central differences (stand-in for the analytic one; the
+    circles' image the estimator already has is not used)."""
     from pose_estimator.conic_pose import circle_params_t
 
     def pred(c: np.ndarray, n: np.ndarray, r: np.ndarray) -> np.ndarray:
