@@ -136,6 +136,8 @@ def match_units(
         cur_groups = [[cur_ok[k] for k in g] for g in found]
     gate_used = float(match_kw.get("gate_mm", result.params.gate_mm))
     excluded: set[tuple[int, int]] = set()
+    # Faces still seen where they were (depth aside): baseline index -> current index.
+    in_place = still_in_place(baseline, current)
     passes = 1
     last_inputs: tuple[Any, ...] | None = None
     for _ in range(refine_passes):
@@ -166,6 +168,13 @@ def match_units(
                 continue
             ref = u.reference_before_mm
             for i in u.baseline_indices:
+                if i in lone and in_place.get(i, lone[i]) != lone[i]:
+                    # A lone pair that moved while a face of its code is still seen where the
+                    # fiducial was (a partly covered fiducial whose depth is off, its pair a
+                    # neighbour's face): it is looked for where it was, as a lone fiducial.
+                    pred[i] = baseline[i].position_mm
+                    gate[i] = translation_gate_mm
+                    continue
                 p = np.asarray(baseline[i].position_mm, dtype=np.float64)
                 pred[i] = u.rotation @ (p - ref) + ref + u.translation_mm
                 gate[i] = rigid_gate_mm if u.method == "rigid" else translation_gate_mm

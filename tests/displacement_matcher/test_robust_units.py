@@ -370,3 +370,27 @@ def test_mover_keeps_its_face_from_the_unit_it_came_to_rest_in_front_of() -> Non
     assert mover.status == "displaced" and mover.n_matched == 2
     np.testing.assert_allclose(mover.translation_mm, move, atol=1.0)
     assert still.status == "lost"
+
+
+def test_lone_fiducial_seen_in_place_with_its_depth_off_keeps_its_face() -> None:
+    """A unit seen through one fiducial, still; after the run the fiducial is partly covered and
+    its depth comes out 60 mm off, while a stranger of the same code shows 23 mm away across the
+    line of sight. Fiducial by fiducial the stranger is cheaper; the face still seen in place
+    (depth aside) is its own: the unit is not displaced and keeps its face."""
+    p0 = np.array([40.0, -25.0, 1800.0])
+    ray = p0 / np.linalg.norm(p0)
+    across = np.cross(ray, [0.0, 0.0, 1.0])
+    across /= np.linalg.norm(across)
+    normal = -ray
+    base = [FiducialPose(29, p0, normal, realistic_cov(p0, 0.1, 0.5))]
+    seen = p0 + 60.0 * ray
+    stranger = p0 + 23.0 * across
+    cur = [
+        FiducialPose(29, stranger, normal, realistic_cov(stranger, 0.1, 0.5)),
+        FiducialPose(29, seen, normal, realistic_cov(seen, 0.1, 0.5)),
+    ]
+    an = match_units(base, cur, unit_map=UMAP, gate_mm=50.0)
+    _, summary = assess(an.units, thresholds(GEO.dn_mm))
+    assert summary.displaced_units == 0
+    pair = next(d for d in an.result.displacements if d.baseline_index == 0)
+    assert pair.current_index == 1
