@@ -138,6 +138,7 @@ def match_units(
     excluded: set[tuple[int, int]] = set()
     # Faces still seen where they were (depth aside): baseline index -> current index.
     in_place = still_in_place(baseline, current)
+    held: set[str] = set()  # units looked for where they were (below)
     passes = 1
     last_inputs: tuple[Any, ...] | None = None
     for _ in range(refine_passes):
@@ -167,6 +168,17 @@ def match_units(
                     gate[i] = translation_gate_mm
                 continue
             ref = u.reference_before_mm
+            if u.unit in held or _mostly_in_place(u.baseline_indices, in_place, pair_of):
+                # Most of its faces are still seen where they were (across the line of sight;
+                # their pairs' depth may be far off, partly covered fiducials): the motion rests
+                # on the rest, a neighbour's face taken. The unit is looked for where it was, and
+                # held there in later passes (the pairs that moved it would otherwise outvote
+                # its faces again once those are claimed).
+                held.add(u.unit)
+                for i in u.baseline_indices:
+                    pred[i] = baseline[i].position_mm
+                    gate[i] = rigid_gate_mm
+                continue
             for i in u.baseline_indices:
                 if i in lone and in_place.get(i, lone[i]) != lone[i]:
                     # A lone pair that moved while a face of its code is still seen where the
@@ -566,3 +578,20 @@ def _contested_lone_pairs(
                 out.add((i, j))
                 break
     return out
+
+
+def _mostly_in_place(
+    members: Sequence[int], in_place: dict[int, int], pair_of: dict[int, int]
+) -> bool:
+    """Whether two or more of a unit's baseline fiducials, and more than those whose pairs
+    moved, have a face of their code still seen where they were (across the line of sight,
+    :func:`.units.still_in_place`) that is their own pair or no pair's."""
+    claimed = set(pair_of.values())
+    stayed = moved = 0
+    for i in members:
+        j = in_place.get(i)
+        if j is not None and (pair_of.get(i) == j or j not in claimed):
+            stayed += 1
+        elif i in pair_of:
+            moved += 1
+    return stayed >= 2 and stayed > moved

@@ -9,6 +9,10 @@ reported displaced, fiducials keep their true partners.
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 import pytest
 from matcher_synth import realistic_cov
@@ -27,6 +31,7 @@ from pose_estimator.types import FiducialPose
 
 GEO = dolos_geometry()
 UMAP = GEO.unit_map()
+DATA = Path(__file__).parent / "data"
 # Local z towards the camera (the camera looks along +z), tilted so all three front faces show.
 R0 = np.diag([1.0, -1.0, -1.0])
 
@@ -394,3 +399,32 @@ def test_lone_fiducial_seen_in_place_with_its_depth_off_keeps_its_face() -> None
     assert summary.displaced_units == 0
     pair = next(d for d in an.result.displacements if d.baseline_index == 0)
     assert pair.current_index == 1
+
+
+def test_still_unit_with_two_faces_in_place_is_not_moved_by_a_depth_outlier_and_a_stranger() -> (
+    None
+):
+    """Real poses from the end-to-end field (seed 4, everything within 80 mm of a still unit):
+    one face's pose after the run is 27 mm off in depth (in place across the line of sight),
+    another's baseline pose was 52 mm off and took a neighbour's face, and the two pairs happen
+    to agree on a rigid 30 mm move; the unit's third face is seen exactly in place and the move
+    left it unpaired. Two faces still seen where they were outweigh one pair that moved: the
+    unit is looked for where it was, and nothing in the patch is displaced."""
+    doc = json.loads((DATA / "covered_unit_seed4.json").read_text())
+
+    def poses(rows: list[dict[str, Any]]) -> list[FiducialPose]:
+        return [
+            FiducialPose(
+                r["code"],
+                np.array(r["position_mm"]),
+                np.array(r["normal"]),
+                np.array(r["covariance_mm2"]),
+            )
+            for r in rows
+        ]
+
+    an = match_units(poses(doc["baseline"]), poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    unit = next(u for u in units if set(u.baseline_indices) == set(doc["unit_baseline_indices"]))
+    assert unit.status == "still"
+    assert summary.displaced_units == 0
