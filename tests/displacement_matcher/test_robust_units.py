@@ -72,6 +72,14 @@ def _shift_depth(pose: FiducialPose, mm: float) -> FiducialPose:
     return FiducialPose(pose.code, pose.position_mm + mm * ray, pose.normal, pose.covariance_mm2)
 
 
+def _lone_site() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A fiducial position off the optical axis, its line of sight and a direction across it."""
+    p0 = np.array([40.0, -25.0, 1800.0])
+    ray = p0 / np.linalg.norm(p0)
+    across = np.cross(ray, [0.0, 0.0, 1.0])
+    return p0, ray, across / np.linalg.norm(across)
+
+
 @pytest.mark.parametrize("slant_deg", [15.0, 35.0, 60.0])
 def test_mirror_normal_is_the_other_circle_pose(slant_deg: float) -> None:
     """The mirrored normal is the second closed-form pose of the circle, to within 1 deg."""
@@ -161,10 +169,7 @@ def test_lone_fiducial_counts_only_confirmed_motion(
     lateral_mm: float, depth_mm: float, displaced: bool
 ) -> None:
     """A unit seen through one fiducial: a pure depth change is not a displacement."""
-    p0 = np.array([40.0, -25.0, 1800.0])
-    ray = p0 / np.linalg.norm(p0)
-    across = np.cross(ray, [0.0, 0.0, 1.0])
-    across /= np.linalg.norm(across)
+    p0, ray, across = _lone_site()
     normal = -ray
     base = [FiducialPose(3, p0, normal, realistic_cov(p0, 0.1, 1.0))]
     p1 = p0 + lateral_mm * across + depth_mm * ray
@@ -382,10 +387,7 @@ def test_lone_fiducial_seen_in_place_with_its_depth_off_keeps_its_face() -> None
     its depth comes out 60 mm off, while a stranger of the same code shows 23 mm away across the
     line of sight. Fiducial by fiducial the stranger is cheaper; the face still seen in place
     (depth aside) is its own: the unit is not displaced and keeps its face."""
-    p0 = np.array([40.0, -25.0, 1800.0])
-    ray = p0 / np.linalg.norm(p0)
-    across = np.cross(ray, [0.0, 0.0, 1.0])
-    across /= np.linalg.norm(across)
+    p0, ray, across = _lone_site()
     normal = -ray
     base = [FiducialPose(29, p0, normal, realistic_cov(p0, 0.1, 0.5))]
     seen = p0 + 60.0 * ray
