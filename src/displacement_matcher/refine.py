@@ -89,7 +89,13 @@ def match_units(
     moved unit's fiducials find their new places. Without an explicit unit map, baseline units
     are also matched one to one to the current state's units (:func:`assign_unit_groups`); where
     that places a unit elsewhere than its own matches do, its fiducials are predicted there
-    (translation gate). Each pass is still one exact global matching.
+    (translation gate). Faces still seen where they were (across the line of sight, where one
+    image measures precisely) outweigh pairs that moved: a unit most of whose faces are in place
+    is looked for there, and so is a unit measured through one pair that moved while a face of
+    its code is in place. A lone pair is ruled out where its fiducial is another unit's face,
+    by that unit's own matches (:func:`_contested_lone_pairs`) or by the template fitted to a
+    still neighbour's faces (:func:`_neighbour_faces_taken`). Each pass is still one exact
+    global matching.
 
     Parameters
     ----------
@@ -212,7 +218,7 @@ def match_units(
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
         excluded |= _contested_lone_pairs(baseline, current, units, pred, lone)
         if template is not None:
-            excluded |= _neighbour_faces_taken(result, units, template, span)
+            excluded |= _neighbour_faces_taken(result, units, template, span, pair_of)
         inputs = (pred, gate, sorted(excluded), groups[0])
         if last_inputs is not None and _same_inputs(inputs, last_inputs):
             # The pass would repeat the last one exactly (same predictions, gates, exclusions
@@ -461,7 +467,11 @@ def _unit_conflicts(
 
 
 def _neighbour_faces_taken(
-    result: MatchResult, units: Sequence[UnitMotion], template: UnitSpec, span_mm: float
+    result: MatchResult,
+    units: Sequence[UnitMotion],
+    template: UnitSpec,
+    span_mm: float,
+    match_of: dict[int, int],
 ) -> set[tuple[int, int]]:
     """Single-fiducial moves onto a still neighbour's own face.
 
@@ -474,14 +484,9 @@ def _neighbour_faces_taken(
     positions within 5 mm RMS, normals within 30 deg), the fiducial is that neighbour's newly
     seen face and the pair is ruled out. A mover that landed beside a neighbour keeps its
     claim unless its face sits exactly where one of the neighbour's would
-    (:func:`_fits_template`).
+    (:func:`_fits_template`). ``match_of``: the result's pairs, baseline -> current index.
     """
     base, cur = result.baseline, result.current
-    match_of = {
-        int(d.baseline_index): int(d.current_index)
-        for d in result.displacements
-        if d.is_match and d.baseline_index is not None and d.current_index is not None
-    }
 
     def moved(i: int) -> bool:
         before = np.asarray(base[i].position_mm, dtype=np.float64)
