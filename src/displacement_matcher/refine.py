@@ -144,6 +144,7 @@ def match_units(
     excluded: set[tuple[int, int]] = set()
     # Faces still seen where they were (depth aside): baseline index -> current index.
     in_place = still_in_place(baseline, current)
+    kw["in_place"] = in_place
     held: set[str] = set()  # units looked for where they were (below)
     passes = 1
     last_inputs: tuple[Any, ...] | None = None
@@ -206,7 +207,13 @@ def match_units(
             # one) override what single fiducials suggested where the two disagree (across the
             # line of sight, beyond the rigid gate).
             for ix, t in assign_unit_groups(
-                baseline, current, groups[0], cur_groups, gate_mm=gate_used, tol_mm=rigid_gate_mm
+                baseline,
+                current,
+                groups[0],
+                cur_groups,
+                gate_mm=gate_used,
+                tol_mm=rigid_gate_mm,
+                shown=in_place,
             ):
                 for i in ix:
                     p = np.asarray(baseline[i].position_mm, dtype=np.float64) + t
@@ -247,6 +254,7 @@ def assign_unit_groups(
     *,
     gate_mm: float,
     tol_mm: float,
+    shown: dict[int, int] | None = None,
 ) -> list[tuple[list[int], NDArray[np.float64]]]:
     """Baseline units matched one to one to the current state's units, by their shared codes.
 
@@ -280,6 +288,8 @@ def assign_unit_groups(
     tol_mm : float
         Largest disagreement (mm, across the line of sight) of a shared face with the unit's
         translation.
+    shown : dict of int to int, optional
+        :func:`.units.still_in_place` of ``baseline`` and ``current``, where the caller has it.
 
     Returns
     -------
@@ -300,7 +310,8 @@ def assign_unit_groups(
     # where one camera measures precisely): their unit did not move, whatever its neighbours
     # now show around it, and the current unit holding that face is its own (one to one: no
     # other baseline unit may claim it). Such units are left to the fiducial matching.
-    shown = still_in_place(baseline, current)
+    if shown is None:
+        shown = still_in_place(baseline, current)
     group_of = {j: c for c, g in enumerate(cur_groups) for j in g}
     still_units = {n for n, (_, ix) in enumerate(base_units) if any(i in shown for i in ix)}
     owned = {group_of[j] for j in shown.values() if j in group_of}
@@ -489,9 +500,7 @@ def _neighbour_faces_taken(
     base, cur = result.baseline, result.current
 
     def moved(i: int) -> bool:
-        before = np.asarray(base[i].position_mm, dtype=np.float64)
-        after = np.asarray(cur[match_of[i]].position_mm, dtype=np.float64)
-        return bool(np.linalg.norm(across_line_of_sight(after - before, before)) > STILL_SHOWN_MM)
+        return not _seen_in_place(cur[match_of[i]].position_mm, base[i].position_mm)
 
     still = [
         v
@@ -541,8 +550,7 @@ def _fits_template(poses: Sequence[FiducialPose], template: UnitSpec) -> bool:
         if int(p.code) not in template.positions_mm:
             return False
         at = R @ np.asarray(template.positions_mm[int(p.code)], dtype=np.float64) + t
-        seen = np.asarray(p.position_mm, dtype=np.float64)
-        if np.linalg.norm(across_line_of_sight(seen - at, seen)) > STILL_SHOWN_MM:
+        if not _seen_in_place(at, p.position_mm):
             return False
     return True
 
@@ -572,14 +580,13 @@ def _contested_lone_pairs(
     out: set[tuple[int, int]] = set()
     for i, j in lone.items():
         pos = np.asarray(current[j].position_mm, dtype=np.float64)
-        before = np.asarray(baseline[i].position_mm, dtype=np.float64)
-        if np.linalg.norm(across_line_of_sight(pos - before, before)) <= STILL_SHOWN_MM:
+        if _seen_in_place(pos, baseline[i].position_mm):
             continue  # a face seen in place is its own evidence
         code = int(current[j].code)
         for k in rows:
             if unit_of[k] == unit_of.get(i) or int(baseline[k].code) != code:
                 continue
-            if np.linalg.norm(across_line_of_sight(pos - pred[k], pos)) <= STILL_SHOWN_MM:
+            if _seen_in_place(pred[k], pos):
                 out.add((i, j))
                 break
     return out
@@ -600,3 +607,11 @@ def _mostly_in_place(
         elif i in pair_of:
             moved += 1
     return stayed >= 2 and stayed > moved
+
+
+def _seen_in_place(point: NDArray[np.float64] | Any, where: NDArray[np.float64] | Any) -> bool:
+    """Whether ``point`` lies within :data:`STILL_SHOWN_MM` of ``where`` across the line of
+    sight through ``where`` (what one image measures precisely; depth aside)."""
+    w = np.asarray(where, dtype=np.float64)
+    off = across_line_of_sight(np.asarray(point, dtype=np.float64) - w, w)
+    return bool(np.linalg.norm(off) <= STILL_SHOWN_MM)

@@ -644,6 +644,7 @@ def unit_motions(
     overturn_deg: float = DEFAULT_OVERTURN_DEG,
     groups: tuple[list[tuple[str, list[int]]], list[int]] | None = None,
     centres: dict[str, NDArray[np.float64] | None] | None = None,
+    in_place: dict[int, int] | None = None,
 ) -> tuple[tuple[UnitMotion, ...], tuple[int, ...]]:
     """Per-unit rigid motion from a fiducial matching.
 
@@ -654,7 +655,8 @@ def unit_motions(
     away from one the unit shows, within the unit span. A face pointing away from faces a unit
     showed before (with template normals) is evidence that the unit turned over: such faces go
     one to one, within the matching gate, to units that lost all their old faces
-    (:func:`_overturn_evidence`).
+    (:func:`_overturn_evidence`). ``in_place``: :func:`still_in_place` of the result's baseline
+    and current poses where the caller has it (computed here otherwise).
 
     Returns
     -------
@@ -703,7 +705,15 @@ def unit_motions(
     if owner_codes is None and normals:
         # Faces opposite to those a unit showed first: they can only be an overturned unit's.
         for d, n in _overturn_evidence(
-            appeared, unit_list, base, cur, cur_of, has_same, normals, result.params.gate_mm
+            appeared,
+            unit_list,
+            base,
+            cur,
+            cur_of,
+            has_same,
+            normals,
+            result.params.gate_mm,
+            in_place,
         ):
             cur_of[n].append(d.current_index)
             appeared_of[n] += 1
@@ -806,6 +816,7 @@ def _overturn_evidence(
     has_same: set[int],
     normals: Mapping[int, NDArray[np.float64]],
     gate_mm: float,
+    in_place: dict[int, int] | None = None,
 ) -> list[tuple[Any, int]]:
     """Appeared faces opposite to those a unit showed, given one to one to the units they fit.
 
@@ -827,7 +838,7 @@ def _overturn_evidence(
         return []
     # A unit still showing an old face where it was did not turn over, whatever that face was
     # matched to.
-    shown = still_in_place(base, cur)
+    shown = still_in_place(base, cur) if in_place is None else in_place
     cols = [
         n
         for n, (_, ix) in enumerate(unit_list)

@@ -191,7 +191,7 @@ def circle_params_t(center: F64, normal: F64, radius: F64) -> F64:
 
     ``center``, ``normal`` ``(3, ...)`` and ``radius`` ``(...)`` give ``(5, ...)``.
     """
-    return image_params_t(_circle_image(center, normal, radius * radius))
+    return image_params_t(circle_image_t(center, normal, radius))
 
 
 def image_params_t(image: CircleImage) -> F64:
