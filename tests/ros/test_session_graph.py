@@ -56,7 +56,9 @@ def test_session_bag_through_three_processes_reports_every_run(
         # Damage count: within one unit of the truth (a unit whose fiducials all turned away
         # may be reported lost rather than overturned) ...
         want = part["displaced_units"]
-        assert abs(rep["summary"]["displaced_units"] - want) <= 1, rep["summary"]["text"]
+        assert abs(rep["summary"]["displaced_units"] - want) <= 1, (
+            rep["summary"]["text"] + "\n" + nodes.log("displacement_matcher")
+        )
         # ... and hardly any fiducial of a unit that did not move reported as having moved
         # (a still fiducial whose partner is hidden may, rarely, take a moved neighbour's).
         still = still_unit_positions(part)
