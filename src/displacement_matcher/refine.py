@@ -14,6 +14,7 @@ global matching. Camera frame, millimetres.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -27,7 +28,7 @@ from pose_estimator.types import FiducialPose
 
 from .errors import MatcherError
 from .match import match
-from .rigid import across_line_of_sight
+from .rigid import across_line_of_sight, rigid_fit
 from .types import MatchResult, UnitMotion
 from .units import (
     DEFAULT_OVERTURN_DEG,
@@ -38,9 +39,11 @@ from .units import (
     UnitSpec,
     assign_units,
     group_fiducials,
+    mirror_normals,
     still_in_place,
     template_pose,
     unit_motions,
+    unit_normals,
 )
 
 
@@ -93,9 +96,10 @@ def match_units(
     image measures precisely) outweigh pairs that moved: a unit most of whose faces are in place
     is looked for there, and so is a unit measured through one pair that moved while a face of
     its code is in place. A lone pair is ruled out where its fiducial is another unit's face,
-    by that unit's own matches (:func:`_contested_lone_pairs`) or by the template fitted to a
-    still neighbour's faces (:func:`_neighbour_faces_taken`). Each pass is still one exact
-    global matching.
+    by that unit's own matches (:func:`_contested_lone_pairs`; where that unit is itself
+    measured through one pair, by the rotation its pair's normals and the fiducial's own fix,
+    :func:`_turned_onto`) or by the template fitted to a still neighbour's faces
+    (:func:`_neighbour_faces_taken`). Each pass is still one exact global matching.
 
     Parameters
     ----------
@@ -223,7 +227,7 @@ def match_units(
                     pred[i] = p
                     gate[i] = translation_gate_mm
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
-        excluded |= _contested_lone_pairs(baseline, current, units, pred, lone)
+        excluded |= _contested_lone_pairs(baseline, current, units, pred, lone, span)
         if template is not None:
             excluded |= _neighbour_faces_taken(result, units, template, span, pair_of)
         inputs = (pred, gate, sorted(excluded), groups[0])
@@ -561,6 +565,7 @@ def _contested_lone_pairs(
     units: Sequence[UnitMotion],
     pred: NDArray[np.float64],
     lone: dict[int, int],
+    span_mm: float = DEFAULT_SPAN_MM,
 ) -> set[tuple[int, int]]:
     """Lone pairs whose current fiducial another unit's own evidence places there.
 
@@ -570,6 +575,14 @@ def _contested_lone_pairs(
     :data:`STILL_SHOWN_MM` of that current fiducial across the line of sight, the fiducial is
     that one's: typically a mover that came to rest in front of a still unit, whose face the
     covered unit's same-code fiducial had taken. A pair seen in place is never contested.
+
+    Another unit measured through one pair itself knows its rotation only in part, and its
+    translation-only prediction misses its other faces by up to ``2 sin(turn / 2)`` times their
+    distance from the pair (6 mm on a dolos turned 20 deg). Such a unit contests the fiducial
+    when the rotation its pair's normals and the fiducial's own normal fix carries its
+    same-code face there (:func:`_turned_onto`): two faces moving as one body outweigh one face
+    that moved alone. (Its pair's fiducial must lie within ``span_mm`` of that fiducial, across
+    the line of sight: faces of one unit.)
     """
     if not lone:
         return set()
@@ -577,6 +590,12 @@ def _contested_lone_pairs(
     rows = [
         k for k in range(len(pred)) if k not in lone and k in unit_of and np.isfinite(pred[k]).all()
     ]
+    # The one pair of each unit measured through one pair: unit -> (baseline, current).
+    pair_of_unit = {
+        unit_of[i]: (i, j)
+        for i, j in lone.items()
+        if i in unit_of and units[unit_of[i]].n_matched == 1
+    }
     out: set[tuple[int, int]] = set()
     for i, j in lone.items():
         pos = np.asarray(current[j].position_mm, dtype=np.float64)
@@ -589,7 +608,62 @@ def _contested_lone_pairs(
             if _seen_in_place(pred[k], pos):
                 out.add((i, j))
                 break
+            own = pair_of_unit.get(unit_of[k])
+            if (
+                own is not None
+                and np.linalg.norm(across_line_of_sight(current[own[1]].position_mm - pos, pos))
+                <= span_mm
+                and _turned_onto(baseline, current, own, k, j)
+            ):
+                out.add((i, j))
+                break
     return out
+
+
+def _turned_onto(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    pair: tuple[int, int],
+    k: int,
+    j: int,
+) -> bool:
+    """Whether the rotation the normals fix carries baseline fiducial ``k`` onto current
+    fiducial ``j`` along with the unit's one pair ``pair``.
+
+    One pair's normals fix two of the unit's three rotation angles; ``j``'s normal, taken as
+    ``k``'s, fixes the spin about the pair's normal (Wahba's problem over the two normal pairs,
+    :func:`.rigid.rigid_fit` without point pairs). Each of the four normals may lie on the
+    wrong branch of the circle pose's two-fold ambiguity (:func:`.units.mirror_normals`), and
+    choosing per pair the smallest turn can pick branches no one rotation explains: the
+    combination with which the rotation carries its worst normal best is taken (as
+    :func:`.units._branch_fit` chooses), and must carry both within 15 deg. Then the pair's
+    offset with that rotation must put ``k`` within :data:`STILL_SHOWN_MM` of ``j`` across the
+    line of sight (where one image measures precisely; the pair's depth does not move a
+    prediction across it): the positions, which chose nothing, are the test.
+    """
+    i, m = pair
+    before, after = [baseline[i], baseline[k]], [current[m], current[j]]
+    nb, na = unit_normals(before), unit_normals(after)
+    if nb is None or na is None:
+        return False
+    pb = np.array([p.position_mm for p in before], dtype=np.float64)
+    pa = np.array([p.position_mm for p in after], dtype=np.float64)
+    if not (np.all(np.isfinite(pb)) and np.all(np.isfinite(pa))):
+        return False
+    alt_b, alt_a = mirror_normals(pb, nb), mirror_normals(pa, na)
+    best: tuple[float, NDArray[np.float64], NDArray[np.float64]] | None = None
+    for flip in itertools.product((False, True), repeat=4):
+        xb = np.where(np.asarray(flip[:2])[:, None], alt_b, nb)
+        xa = np.where(np.asarray(flip[2:])[:, None], alt_a, na)
+        R, t = rigid_fit(pb[:1], pa[:1], np.ones(1), xb, xa)
+        worst = float(np.min(np.einsum("ki,ki->k", xb @ R.T, xa)))
+        if best is None or worst > best[0]:
+            best = (worst, R, t)
+    assert best is not None
+    worst, R, t = best
+    if worst < np.cos(np.radians(15.0)):
+        return False
+    return _seen_in_place(R @ pb[1] + t, pa[1])
 
 
 def _mostly_in_place(

@@ -392,7 +392,7 @@ def group_fiducials(
     return sorted(out, key=lambda g: g[0])
 
 
-def _unit_normals(poses: Sequence[FiducialPose]) -> NDArray[np.float64] | None:
+def unit_normals(poses: Sequence[FiducialPose]) -> NDArray[np.float64] | None:
     """Unit normals of the poses as ``(k, 3)``, or None when any is unusable."""
     if not poses:
         return None
@@ -508,7 +508,7 @@ def _pair_normals(
     between before and after (a wrong branch shows as a spurious turn of about twice the slant).
     ``(None, None)`` when a normal is unusable.
     """
-    nb, na = _unit_normals(before), _unit_normals(after)
+    nb, na = unit_normals(before), unit_normals(after)
     if nb is None or na is None:
         return None, None
     rb = _template_branches(before, nb, template)
@@ -544,7 +544,7 @@ def template_pose(
         return None
     local = np.array([template.positions_mm[int(p.code)] for p in sel])
     seen = np.array([p.position_mm for p in sel], dtype=np.float64)
-    n_seen = _unit_normals(sel)
+    n_seen = unit_normals(sel)
     has_tn = all(int(p.code) in template.normals for p in sel)
     w = np.array([1.0 / max(float(np.trace(p.covariance_mm2)) / 3.0, 1e-6) for p in sel])
     if n_seen is not None and has_tn:

@@ -382,6 +382,57 @@ def test_mover_keeps_its_face_from_the_unit_it_came_to_rest_in_front_of() -> Non
     assert still.status == "lost"
 
 
+@pytest.mark.parametrize("flipped", [False, True])
+@pytest.mark.parametrize(
+    ("axis", "deg"), [([0.0, 0.0, 1.0], 21.0), ([0.0, 1.0, 0.0], 30.0), ([1.0, 1.0, 0.0], 21.0)]
+)
+def test_turned_mover_seen_through_one_face_keeps_its_other_face(
+    axis: list[float], deg: float, flipped: bool
+) -> None:
+    """As above, but the mover also turns (21 deg about the line of sight, 30 deg across it):
+    predicted from its code-17 face by translation alone, its code-29 face misses by 5-9 mm,
+    beyond what one image's precision lets call it the same place, and the covered unit's
+    claim stood. The rotation the mover's pair's normals and the face's own normal fix carries
+    the face there: it is the mover's, which is displaced with both faces, and the covered unit
+    is not displaced. Also with the face's normal on the other branch of the circle pose's
+    two-fold ambiguity (``flipped``), which no rotation of the pair's normals explains."""
+    a, m = np.array([0.0, 0.0, 1800.0]), np.array([45.0, 0.0, 1800.0])
+    move = np.array([-30.0, 0.0, -30.0])
+    covered = [p for p in _unit(a, R0) if p.code in (3, 29)]
+    mover_before = [p for p in _unit(m, R0) if p.code in (17, 29)]
+    mover_after = [p for p in _unit(m + move, _rot(axis, deg) @ R0) if p.code in (17, 29)]
+    assert [p.code for p in mover_after] == [17, 29]
+    if flipped:
+        mover_after[1] = _flip_normal(mover_after[1])
+    an = match_units(covered + mover_before, mover_after, unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    mover = next(u for u in units if set(u.baseline_indices) == {2, 3})
+    still = next(u for u in units if set(u.baseline_indices) == {0, 1})
+    assert summary.displaced_units == 1
+    assert mover.status == "displaced" and mover.n_matched == 2
+    assert mover.rotation_deg == pytest.approx(deg, abs=2.0)
+    assert still.status == "lost"
+
+
+def test_lone_claim_stands_where_no_rigid_motion_of_the_neighbour_fits() -> None:
+    """The other side of the rule above: the code-29 fiducial lies 8 mm (across the line of
+    sight) from where the mover's rigid motion would carry its face, so it is not the mover's
+    face and the unit seen through that one fiducial keeps its claim (it moved 2 Dn)."""
+    a, m = np.array([0.0, 0.0, 1800.0]), np.array([45.0, 0.0, 1800.0])
+    move = np.array([-30.0, 0.0, -30.0])
+    R1 = _rot([0.0, 0.0, 1.0], 21.0) @ R0
+    covered = [p for p in _unit(a, R0) if p.code in (3, 29)]
+    mover_before = [p for p in _unit(m, R0) if p.code in (17, 29)]
+    p17, p29 = (p for p in _unit(m + move, R1) if p.code in (17, 29))
+    off = p29.position_mm + np.array([0.0, 8.0, 0.0])
+    mover_after = [p17, FiducialPose(29, off, p29.normal, p29.covariance_mm2)]
+    an = match_units(covered + mover_before, mover_after, unit_map=UMAP, gate_mm=50.0)
+    units, _ = assess(an.units, thresholds(GEO.dn_mm))
+    still = next(u for u in units if set(u.baseline_indices) == {0, 1})
+    assert still.status == "displaced" and still.n_matched == 1
+    assert still.current_indices == (1,)
+
+
 def test_lone_fiducial_seen_in_place_with_its_depth_off_keeps_its_face() -> None:
     """A unit seen through one fiducial, still; after the run the fiducial is partly covered and
     its depth comes out 60 mm off, while a stranger of the same code shows 23 mm away across the
