@@ -106,6 +106,8 @@ class TargetTruth:
     outer_diameter_px : float
         Imaged diameter of the outer printed circle, fronto-parallel equivalent
         (``f * diameter / z``).
+    arc_conics : tuple of (3, 3) ndarray
+        The same for the circles that carry the coding track's arcs (``FiducialDesign.arcs``).
     """
 
     code: int
@@ -117,6 +119,7 @@ class TargetTruth:
     center_px: NDArray[np.float64]
     conics: tuple[NDArray[np.float64], ...]
     outer_diameter_px: float
+    arc_conics: tuple[NDArray[np.float64], ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,11 +176,13 @@ def target_truth(camera: CameraModel, target: Target) -> TargetTruth:
     # C = H^-T diag(1, 1, -rho^2) H^-1.
     H = camera.K @ np.column_stack([R[:, 0], R[:, 1], t])
     Hinv = np.linalg.inv(H)
-    conics = []
-    for circle in design.circles:
-        rho = circle.radius * target.diameter_mm / 2.0
+
+    def conic(radius: float) -> NDArray[np.float64]:
+        rho = radius * target.diameter_mm / 2.0
         C = Hinv.T @ np.diag([1.0, 1.0, -rho * rho]) @ Hinv
-        conics.append(C / np.sqrt(abs(np.linalg.det(C[:2, :2]))))
+        return np.asarray(C / np.sqrt(abs(np.linalg.det(C[:2, :2]))), dtype=np.float64)
+
+    conics = [conic(c.radius) for c in design.circles]
     center = camera.project(t.reshape(1, 3))[0]
     return TargetTruth(
         code=target.code,
@@ -189,6 +194,7 @@ def target_truth(camera: CameraModel, target: Target) -> TargetTruth:
         center_px=center,
         conics=tuple(conics),
         outer_diameter_px=float(camera.K[0, 0] * target.diameter_mm / t[2]),
+        arc_conics=tuple(conic(c.radius) for c in design.arcs),
     )
 
 

@@ -65,6 +65,12 @@ class FiducialDesign:
         Radial extent of the coding track.
     annulus_inner : float or None
         Inner radius of the black outer annulus (``ring`` only).
+    arcs : tuple of Circle
+        Circular limits of the coding track larger than the pose circle, which the detector
+        fits as partial edges (printed only where a sector is black; ``dark_inside`` as seen
+        there): the ``dot`` design's track's outer edge, 3.3 times its dot, which tells the
+        depth far better than the dot. (The track's inner edge, where the sectors' corners
+        crowd, is not used; the ``ring`` design's pose circle is its largest edge.)
     """
 
     name: DesignName
@@ -73,6 +79,7 @@ class FiducialDesign:
     track_inner: float
     track_outer: float
     annulus_inner: float | None
+    arcs: tuple[Circle, ...] = ()
 
     @property
     def pose_circle(self) -> Circle:
@@ -109,6 +116,7 @@ DOT = FiducialDesign(
     track_inner=0.56,
     track_outer=1.0,
     annulus_inner=None,
+    arcs=(Circle(1.0, True),),
 )
 
 RING = FiducialDesign(

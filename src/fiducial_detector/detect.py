@@ -17,10 +17,13 @@ Pipeline, designed so that only cheap vectorised work touches every pixel or eve
 4. Only decoded candidates get sub-pixel ellipses for every printed circle of their design
    (step 3, then better: edge profiles along the normals, :mod:`.profile_fit`, by default; the
    maximum-likelihood edge model, :mod:`.edge_fit`, for steep fiducials and with
-   ``subpixel="ml"``; the paper's Ouellet & Hébert dual conic, :mod:`.ellipse`, below 40 px
-   and as the last resort), the pose circle seeded by the coarse ellipse, the others by the
+   ``subpixel="ml"``, and for the ``ring`` design's annulus below 40 px; the paper's Ouellet &
+   Hébert dual conic, :mod:`.ellipse`, for the other circles below 40 px and as the last
+   resort), the pose circle seeded by the coarse ellipse, the others by the
    fitted pose circle scaled; the track is read again through the fitted ellipses and the
-   centre drift they give, and two accepted reads must agree.
+   centre drift they give, and two accepted reads must agree. Accepted ``dot`` fiducials then
+   get their track's outer edge fitted on its black sectors (:func:`fit_arcs`): 3.3 times
+   the dot, it carries the depth.
 5. A detection centred inside a bigger one (a ``ring`` fiducial's dot and track read as a ``dot``
    fiducial) is dropped.
 
@@ -29,6 +32,7 @@ Pixel convention: ``(u, v)`` = (x, y) = (column, row), pixel centres at integer 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -45,11 +49,11 @@ from .code_reader import (
     read_codes,
 )
 from .components import Boundaries, outer_boundaries
-from .design import DESIGNS, DOT, RING, FiducialDesign
+from .design import DESIGNS, DOT, PAPER_RADIUS, RING, Circle, FiducialDesign
 from .edge_fit import EdgeFits, refine_annuli, refine_ellipses
 from .ellipse import estimate_noise, fit_ellipses
 from .errors import DetectorError
-from .profile_fit import line_counts, refine_by_profiles_f32
+from .profile_fit import MAX_WINDOW_PX, line_counts, refine_by_profiles_f32
 from .threshold import DEFAULT_T, bradley_threshold
 from .types import Ellipse, FiducialDetection
 
@@ -97,13 +101,20 @@ MODEL_MIN_SEPARATION = 1000.0
 #: Half-width of the pixel band of the maximum-likelihood edge fits (further limited to half-way
 #: to the design's neighbouring printed edges).
 EDGE_BAND_PX = 2.0
-#: Smallest imaged outer radius (pixels) fitted by the edge model. Below it (under 40 px across)
-#: the bands that stay clear of the neighbouring printed edges hold few pixels, and on JPEG frames
-#: the gradient dual-conic fit, whose polarity test separates close edges, proved more robust: on
-#: the bundled session bag (33-36 px fiducials, JPEG quality 92) the edge model gave 1-2 wrong
-#: matches and 2 still fiducials moved > 2 mm against 1 and 0 for the dual conic, although its
-#: absolute depth was better (median z error -0.14 mm against -1.04 mm).
+#: Smallest imaged outer radius (pixels) fitted by the edge model, but for an annulus' pose circle.
+#: Below it (under 40 px across) the bands that stay clear of the neighbouring printed edges hold
+#: few pixels for a single edge. The ``ring`` design's annulus, both of its edges in the model,
+#: is fitted at every size (the dual conic's pose circle was 0.02-0.19 px too large at 24-39 px);
+#: on the bundled session bag (33-36 px, JPEG quality 92) that leaves wrong matches at 0 and the
+#: displaced units as they were, and brings the displacement errors' median from 0.16 to 0.11 mm.
 EDGE_MODEL_MIN_RADIUS_PX = 20.0
+#: Gauss-Newton iterations of the annulus model (fits leave once converged). A small fiducial's
+#: seed is its boundary's moment ellipse, up to 1.5 px off: at 34 px and 40 deg such a seed had
+#: not converged after 4 (scale 0.08-0.12 px off), and was within 0.01 px after 8.
+ANNULUS_ITERATIONS = 8
+#: Below the edge model's smallest size, annulus fits whose RMS residual exceeds this many times
+#: the median of the image's fits (at least the noise) are replaced by the dual conic.
+ANNULUS_OUTLIER_CHI = 3.0
 #: Sub-pixel ellipse methods of step 4: ``profile`` (edge profiles along the normals,
 #: :mod:`.profile_fit`: fast) and ``ml`` (the maximum-likelihood blurred-edge model of
 #: :mod:`.edge_fit`: slower, at the Cramer-Rao bound).
@@ -115,6 +126,19 @@ PROFILE_MIN_COVERAGE = 0.5
 #: Largest curvature (1/px) at a pose ellipse's tips for the ``profile`` method: beyond it (a
 #: 60 px ``dot`` fiducial past about 60 deg of slant) the fiducial gets the ``ml`` fit.
 PROFILE_MAX_TIP_CURVATURE = 0.4
+#: Fraction of a coding-track arc's profile lines that must find its edge for the arc to be
+#: reported (a code has at least five black sectors of 16; the lines near each sector's ends
+#: are not used).
+ARC_MIN_COVERAGE = 0.1
+#: Smallest semi-minor axis (pixels) of a coding-track arc's image for it to be fitted. Thinner,
+#: its sectors' ends crowd its few lines and its edge nears the paper's along the minor axis:
+#: on the pose benchmark's 45 px fiducials at 66-69 deg (arc semi-minor 8-9 px) the fits that
+#: found enough lines were off by several of their sds (chi-square 20-30 on 5), and those that
+#: did not were left out, so that depth jumped between the arcs' and the dot's.
+ARC_MIN_MINOR_PX = 10.0
+#: Profile passes of an arc fit: a coarse one (wide windows, measuring the blur) from the scaled
+#: pose circle, then full ones.
+ARC_PASSES = 3
 
 
 @dataclass(frozen=True, slots=True)
@@ -468,10 +492,10 @@ def _finish(
         ok = _model_confirms(grey, design, centre[tj], axes[tj], angle[tj], drift[tj], codes, noise)
         confirmed = {int(j) for j in tj[ok]}
     checked = {j for j, _, _ in thin}
-    for j, reading, k in chosen:
-        if j in checked and j not in confirmed:
-            continue
-        out.append(_detection(design, fitted[j], reading, k))
+    final = [(j, reading, k) for j, reading, k in chosen if j not in checked or j in confirmed]
+    groups = fit_arcs(grey, [fitted[j] for j, _, _ in final], design)
+    for group, (_, reading, k) in zip(groups, final, strict=True):
+        out.append(_detection(design, group, reading, k))
     return out
 
 
@@ -548,7 +572,8 @@ def fit_design_circles(
     two-edge model; the remaining circles are seeded from the fitted pose circle, scaled. A pose
     circle the model cannot fit (a seed too far off) gets the gradient dual-conic fit
     (:func:`.ellipse.fit_ellipses`); an inner circle that fails is left out. Smaller fiducials
-    get the dual-conic fit for every circle.
+    get the dual-conic fit for every circle, except the ``ring`` design's pose circle, which
+    the two-edge annulus model still fits (see :func:`_fit_small_annulus`).
     """
     seeds = np.asarray(seeds, dtype=np.float64).reshape(-1, 5)
     if method not in SUBPIXEL_METHODS:
@@ -581,10 +606,79 @@ def fit_design_circles(
     return out
 
 
+def fit_arcs(
+    grey: NDArray[np.generic], groups: list[tuple[Ellipse, ...]], design: FiducialDesign
+) -> list[tuple[Ellipse, ...]]:
+    """Each fiducial's fitted circles followed by its design's coding-track arcs (the ``dot``
+    design's track's outer edge), where they could be fitted.
+
+    The ``dot`` design's only full circle, its dot, is small (0.3 of the outer radius) and
+    carries the pose badly; the track's outer edge, 3.3 times larger, is printed only where a
+    sector is black. It is fitted from edge profiles on those parts only (the ``partial`` mode
+    of :func:`.profile_fit.refine_by_profiles_f32`: lines across white sectors or near a
+    sector's end are left out), seeded by the fitted pose circle scaled and tied to that seed
+    along what the arcs leave unmeasured, with the covariance of what they measure. The pose
+    estimator takes it as one more concentric circle of known radius.
+
+    Parameters
+    ----------
+    grey : (H, W) ndarray
+        Grey image indexed ``[v, u]``.
+    groups : list of tuple of Ellipse
+        Fitted circles of each fiducial, pose circle first (:func:`fit_design_circles`).
+    design : FiducialDesign
+
+    Returns
+    -------
+    list of tuple of Ellipse
+        ``groups``, each with its fitted arcs appended.
+    """
+    r0 = design.pose_circle.radius
+    if not design.arcs or not groups:
+        return groups
+    base = np.array([_parameters(g[0]) for g in groups])
+    # One float32 copy of the region the arcs' windows can reach (not the whole frame).
+    reach = base[:, 2] * PAPER_RADIUS / r0 + MAX_WINDOW_PX + 2.0
+    h, w = grey.shape[:2]
+    u0 = int(np.clip(np.floor(np.min(base[:, 0] - reach)), 0, w))
+    v0 = int(np.clip(np.floor(np.min(base[:, 1] - reach)), 0, h))
+    u1 = int(np.clip(np.ceil(np.max(base[:, 0] + reach)) + 1, u0, w))
+    v1 = int(np.clip(np.ceil(np.max(base[:, 1] + reach)) + 1, v0, h))
+    src = np.asarray(grey[v0:v1, u0:u1], dtype=np.float32)
+    base[:, 0] -= u0
+    base[:, 1] -= v0
+    out = list(groups)
+    for arc in design.arcs:
+        seeds = base.copy()
+        seeds[:, 2:4] *= arc.radius / r0
+        inner, outer = design.neighbour_edges(arc.radius)
+        r = arc.radius
+        res = refine_by_profiles_f32(
+            src,
+            seeds,
+            np.full(len(seeds), 1.0 if arc.dark_inside else -1.0),
+            (1.0 - 0.5 * (r - inner) / r, 1.0 + 0.5 * (outer - r) / r),
+            passes=ARC_PASSES,
+            partial=True,
+        )
+        res.params[:, 0] += u0
+        res.params[:, 1] += v0
+        seeds[:, 0] += u0
+        seeds[:, 1] += v0
+        keep = res.ok & (res.pixels >= ARC_MIN_COVERAGE * line_counts(seeds))
+        keep &= seeds[:, 3] >= ARC_MIN_MINOR_PX
+        keep &= _plausible_rows(res.params, seeds)
+        for j, e in enumerate(_ellipses(res, r, keep=keep)):
+            if e is not None:
+                out[j] = (*out[j], e)
+    return out
+
+
 def _fit_ml(
     grey: NDArray[np.generic], seeds: NDArray[Any], design: FiducialDesign, noise: float
 ) -> list[tuple[Ellipse, ...]]:
-    """:func:`fit_design_circles` by the edge model (dual conic below its smallest size)."""
+    """:func:`fit_design_circles` by the edge model (below its smallest size the dual conic,
+    except for an annulus' pose circle)."""
     r0 = design.pose_circle.radius
     small = seeds[:, 2] < EDGE_MODEL_MIN_RADIUS_PX * r0
     out: list[tuple[Ellipse, ...]] = [()] * len(seeds)
@@ -592,8 +686,61 @@ def _fit_ml(
     for j, g in zip(big, _fit_edge_model(grey, seeds[big], design, noise), strict=True):
         out[j] = g
     tiny = np.flatnonzero(small)
-    for j, g in zip(tiny, _fit_dual_conic(grey, seeds[tiny], design, noise), strict=True):
+    fit_small = _fit_small_annulus if _has_annulus(design) else _fit_dual_conic
+    for j, g in zip(tiny, fit_small(grey, seeds[tiny], design, noise), strict=True):
         out[j] = g
+    return out
+
+
+def _has_annulus(design: FiducialDesign) -> bool:
+    """True when the design's pose circle is the outer edge of an annulus (circles 0 and 1)."""
+    return design.annulus_inner is not None and len(design.circles) > 1
+
+
+def _fit_small_annulus(
+    grey: NDArray[np.generic], seeds: NDArray[Any], design: FiducialDesign, noise: float
+) -> list[tuple[Ellipse, ...]]:
+    """Fiducials below the edge model's smallest size whose pose circle is an annulus' outer
+    edge: the annulus by the two-edge model, the other circles by the dual conic.
+
+    The dual conic's gradients there take in the annulus' other edge and the code track a pixel
+    or two away: its pose circle came out 0.02-0.19 px too large at 24-39 px across (noise-free
+    renders, slant 0-65 deg), so depth 1-2 mm too near at 1.7 m. The two-edge model has both
+    annulus edges in its intensities and stays within about 0.01 px there. The inner circles
+    only fix the centre's image and the normal (their radii are nuisance parameters of the pose),
+    so the dual conic serves them; it also takes every circle where the annulus model fails.
+    """
+    if len(seeds) == 0:
+        return []
+    r0 = design.pose_circle.radius
+    inner_seeds = seeds.copy()
+    inner_seeds[:, 2:4] *= design.circles[1].radius / r0
+    # Not the model's inner edge, even where seen: its prior ties it to the outer edge's centre,
+    # and the offset between concentric circles' centres that perspective makes is what tells
+    # the pose's two solutions apart (with it, 48 % of the field's normals were over 10 deg off,
+    # against 35 % with the dual conic's).
+    pose, _ = _refine_annulus(grey, noise, design, seeds, inner_seeds)
+    # A fit whose residuals far exceed the other fiducials' in the image was not fitting an
+    # annulus (one partly covered by a neighbour: RMS 23-49 noise sds against 1-1.3 on the
+    # synthetic field, 5-6 on the JPEG session bag, and 3-9 mm off in depth); the dual conic,
+    # whose tangents of the visible arc still lie on the edge, serves it better.
+    chi = np.array([e.rms_residual if e is not None else np.nan for e in pose])
+    if np.any(np.isfinite(chi)):
+        typical = max(float(np.nanmedian(chi)), 1.0)
+        for k in np.flatnonzero(chi > ANNULUS_OUTLIER_CHI * typical).tolist():
+            pose[k] = None
+    # One dual-conic call (its gradients cost per call): the inner circles of the fitted
+    # annuli, seeded from them, and every circle of the others, seeded from their seeds.
+    start = np.array(
+        [_parameters(e) if e is not None else s for e, s in zip(pose, seeds, strict=True)]
+    )
+    first = [1 if e is not None else 0 for e in pose]
+    out: list[tuple[Ellipse, ...]] = []
+    fits = _dual_conic_circles(grey, start, design, noise, first)
+    for e, group in zip(pose, fits, strict=True):
+        if e is None:
+            e = group.pop(0)
+        out.append(() if e is None else (e, *(o for o in group if o is not None)))
     return out
 
 
@@ -692,32 +839,54 @@ def _fit_dual_conic(
 ) -> list[tuple[Ellipse, ...]]:
     """Every circle by the gradient dual-conic fit, seeded by the scaled pose seed (fiducials
     too small for the edge model's bands)."""
+    out: list[tuple[Ellipse, ...]] = []
+    for group in _dual_conic_circles(grey, seeds, design, noise, [0] * len(seeds)):
+        if group[0] is None:
+            out.append(())
+            continue
+        out.append(tuple(e for e in group if e is not None))
+    return out
+
+
+def _dual_conic_circles(
+    grey: NDArray[np.generic],
+    seeds: NDArray[Any],
+    design: FiducialDesign,
+    noise: float,
+    first: Sequence[int],
+) -> list[list[Ellipse | None]]:
+    """Circles ``first[j]`` onwards of the design by the gradient dual-conic fit, seeded by pose
+    ellipse ``seeds[j]`` scaled; per seed one entry per circle, None where a fit failed or
+    strayed."""
     if len(seeds) == 0:
         return []
     r0 = design.pose_circle.radius
-    m = len(design.circles)
     flat: list[Ellipse] = []
-    for p in seeds:
-        for circle in design.circles:
+    circles: list[Circle] = []
+    for p, k0 in zip(seeds, first, strict=True):
+        for circle in design.circles[k0:]:
             q = p.copy()
             q[2:4] *= circle.radius / r0
             flat.append(_as_ellipse(q))
+            circles.append(circle)
     fits = fit_ellipses(
         grey,
         flat,
-        [c.radius for c in design.circles] * len(seeds),
+        [c.radius for c in circles],
         noise_std=noise,
-        dark_inside=[c.dark_inside for c in design.circles] * len(seeds),
+        dark_inside=[c.dark_inside for c in circles],
     )
-    out: list[tuple[Ellipse, ...]] = []
-    for j in range(len(seeds)):
-        group = fits[j * m : (j + 1) * m]
-        seeds_j = flat[j * m : (j + 1) * m]
-        if group[0] is None or not _plausible(group[0], seeds_j[0]):
-            out.append(())
-            continue
-        rest = [e for e, s in zip(group[1:], seeds_j[1:], strict=True) if e and _plausible(e, s)]
-        out.append((group[0], *rest))
+    out: list[list[Ellipse | None]] = []
+    at = 0
+    for k0 in first:
+        m = len(design.circles) - k0
+        out.append(
+            [
+                e if e is not None and _plausible(e, s) else None
+                for e, s in zip(fits[at : at + m], flat[at : at + m], strict=True)
+            ]
+        )
+        at += m
     return out
 
 
@@ -728,7 +897,7 @@ def _fit_edge_model(
     if len(seeds) == 0:
         return []
     r0 = design.pose_circle.radius
-    annulus = design.annulus_inner is not None and len(design.circles) > 1
+    annulus = _has_annulus(design)
     if annulus:
         # The ring design's pose circle is the outer edge of a black annulus whose inner edge is
         # the second circle: both edges are fitted together (thin when seen obliquely).
@@ -783,6 +952,7 @@ def _refine_annulus(
             1.0 - 0.5 * (c_in.radius - inside) / c_in.radius,
             1.0 + 0.5 * (outside - c_out.radius) / c_out.radius,
         ),
+        iterations=ANNULUS_ITERATIONS,
     )
     pose = _ellipses(fo, c_out.radius, keep=_plausible_rows(fo.params, outer_seeds))
     second = _ellipses(fi, c_in.radius, keep=_plausible_rows(fi.params, inner_seeds))

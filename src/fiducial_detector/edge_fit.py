@@ -67,8 +67,9 @@ _MIN_PIXELS = 16
 #: by -0.075 px); at 0.7 its centre sd is 0.018 px and the axis bias -0.009 px (first-order
 #: model error there is below the masking's own bias). Unchanged below 0.35.
 _MAX_CURVATURE_SPREAD = 0.7
-#: Smallest distance, in edge spreads, from a neighbouring printed edge for a pixel to be used.
-_MIN_GAP_SPREADS = 4.5
+#: Smallest distance, in edge spreads, from a neighbouring printed edge for a pixel to be used
+#: (its blur is then below 1.3 % of its step there).
+_MIN_GAP_SPREADS = 2.25
 #: Prior sd of an annulus' inner edge about its scaled outer edge, pixels (see refine_annuli).
 ANNULUS_TIE_PX = 0.1
 #: An inner edge whose fitted sd exceeds this fraction of the prior's was not seen by the data.
@@ -111,6 +112,19 @@ class EdgeFits:
     def __len__(self) -> int:
         return int(self.ok.shape[0])
 
+    @classmethod
+    def blank(cls, n: int) -> EdgeFits:
+        """``n`` fits not done (yet): NaN, not ok."""
+        return cls(
+            params=np.full((n, 5), np.nan),
+            covariance=np.full((n, 5, 5), np.nan),
+            contrast=np.full(n, np.nan),
+            spread=np.full(n, np.nan),
+            chi=np.full(n, np.nan),
+            pixels=np.zeros(n, dtype=np.intp),
+            ok=np.zeros(n, dtype=bool),
+        )
+
 
 def refine_ellipses(
     image: NDArray[Any],
@@ -139,8 +153,8 @@ def refine_ellipses(
         Half-width of the band of pixels used around each edge, pixels.
     rho_range : (float, float)
         Half-way to the nearest other printed edges inside and outside, in units of the ellipse's
-        own scale (``rho = 1`` on it): pixels beyond are not used, nor pixels where such an edge
-        comes within a few edge spreads (its blur would reach them; a thin annulus seen
+        own scale (``rho = 1`` on it): pixels beyond are not used, nor pixels that such an edge
+        comes within a few edge spreads of (its blur would reach them; a thin annulus seen
         obliquely). A printed design knows these at every slant, where a band in pixels does not.
     iterations : int
         Gauss-Newton iterations (4 reach 1e-3 px from a seed within a pixel).
@@ -156,8 +170,9 @@ def refine_ellipses(
     """
     seeds = checked_seeds(seeds)
     polarity = polarity_signs(dark_inside, seeds.shape[0])
+    sigma = checked_noise(noise_std, seeds.shape[0])
     return _refine(
-        image, seeds[:, None, :], (1.0,), polarity, noise_std, band_px, rho_range, iterations
+        image, seeds[:, None, :], (1.0,), polarity, sigma, band_px, rho_range, iterations
     )[0]
 
 
@@ -215,12 +230,13 @@ def refine_annuli(
     polarity = np.full(outer.shape[0], 1.0 if dark_annulus else -1.0)
     if not tie_px > 0:
         raise DetectorError(f"tie_px must be positive, got {tie_px}")
+    sigma = checked_noise(noise_std, outer.shape[0])
     fits = _refine(
         image,
         np.stack([outer, inner], axis=1),
         (1.0, -1.0),
         polarity,
-        noise_std,
+        sigma,
         band_px,
         rho_range,
         iterations,
@@ -247,6 +263,13 @@ def checked_seeds(seeds: NDArray[Any]) -> NDArray[np.float64]:
     return out
 
 
+def checked_noise(noise_std: float, n: int) -> NDArray[np.float64]:
+    """``noise_std``, a positive number, as one value per fit."""
+    if not (np.isfinite(noise_std) and noise_std > 0):
+        raise DetectorError(f"noise_std must be a positive number, got {noise_std}")
+    return np.full(n, float(noise_std))
+
+
 def checked_rho_range(rho_range: tuple[float, float]) -> tuple[float, float]:
     """``rho_range`` as ``(lo, hi)`` with ``0 <= lo < 1 < hi``."""
     lo, hi = (float(x) for x in rho_range)
@@ -265,35 +288,22 @@ def _refine(
     seeds: NDArray[np.float64],
     signs: tuple[float, ...],
     polarity: NDArray[np.float64],
-    noise_std: float,
+    sigma: NDArray[np.float64],
     band_px: float,
     rho_range: tuple[float, float],
     iterations: int,
     tie_px: float = 0.0,
 ) -> list[EdgeFits]:
     """Common core: ``seeds`` is ``(n, E, 5)``, outermost edge first; ``signs`` the sign of each
-    edge's step in the model (+1 the outermost)."""
+    edge's step in the model (+1 the outermost); ``sigma`` the noise sd of each fit."""
     img = checked_image(image)
-    if not (np.isfinite(noise_std) and noise_std > 0):
-        raise DetectorError(f"noise_std must be a positive number, got {noise_std}")
     if iterations < 1:
         raise DetectorError(f"iterations must be at least 1, got {iterations}")
     if not band_px >= 1.0:
         raise DetectorError(f"band_px must be at least 1 pixel, got {band_px}")
     lo, hi = checked_rho_range(rho_range)
     n, n_edges = seeds.shape[0], seeds.shape[1]
-    outs = [
-        EdgeFits(
-            params=np.full((n, 5), np.nan),
-            covariance=np.full((n, 5, 5), np.nan),
-            contrast=np.full(n, np.nan),
-            spread=np.full(n, np.nan),
-            chi=np.full(n, np.nan),
-            pixels=np.zeros(n, dtype=np.intp),
-            ok=np.zeros(n, dtype=bool),
-        )
-        for _ in range(n_edges)
-    ]
+    outs = [EdgeFits.blank(n) for _ in range(n_edges)]
     usable = np.all(np.isfinite(seeds), axis=(1, 2))
     usable &= np.all(seeds[:, :, 3] > 0.5, axis=1) & np.all(
         seeds[:, :, 2] >= seeds[:, :, 3], axis=1
@@ -331,7 +341,7 @@ def _refine(
             band_px,
             (lo, hi),
             polarity[idx[blk]],
-            float(noise_std),
+            sigma[idx[blk]],
             iterations,
             tie_px,
         )
@@ -369,7 +379,7 @@ def _gauss_newton(
     band: float,
     rho_range: tuple[float, float],
     polarity: NDArray[np.float64],
-    sigma: float,
+    sigma: NDArray[np.float64],
     iterations: int,
     tie_px: float,
 ) -> _BlockFit:
@@ -403,7 +413,7 @@ def _gauss_newton(
     normal = np.zeros((k, npar, npar))
     count = np.zeros(k, dtype=np.intp)
     chi = np.full(k, np.nan)
-    model = _EdgeModel(signs, band32, (f32(lo), f32(hi)), (gap_in, gap_out), sigma)
+    model = _EdgeModel(signs, band32, (f32(lo), f32(hi)), (gap_in, gap_out))
     # Fits that have converged leave the batch: later iterations cost only what still moves.
     rows = np.arange(k)
     for it in range(iterations + 1):
@@ -412,7 +422,7 @@ def _gauss_newton(
         coarse = it < iterations - 1 and it < _COARSE_ITERATIONS
         px = slice(None, None, 2) if coarse else slice(None)
         theta_rows = theta[rows]
-        nrm, rhs, cnt, chi_rows = model.normal_equations(
+        nrm, rhs, cnt, rms_rows = model.normal_equations(
             theta_rows,
             du0[rows, px],
             dv0[rows, px],
@@ -423,7 +433,7 @@ def _gauss_newton(
         )
         if it == 0:
             theta[rows] = theta_rows  # with the levels the first evaluation started from
-        normal[rows], count[rows], chi[rows] = nrm, cnt, chi_rows
+        normal[rows], count[rows], chi[rows] = nrm, cnt, rms_rows / sigma[rows]
         if it == iterations:
             break
         # Marquardt damping of the diagonal keeps early steps short where the model is poor.
@@ -463,7 +473,7 @@ def _gauss_newton(
         # A posteriori variance factor: residuals beyond the image noise (compression
         # artefacts, model misfit) widen the covariance; it is never narrowed below the noise.
         factor = np.maximum(np.nan_to_num(chi[good], nan=1.0), 1.0) ** 2
-        cov_all[good] = _safe_inverse(normal[good]) * (sigma * sigma * factor)[:, None, None]
+        cov_all[good] = _safe_inverse(normal[good]) * (sigma[good] ** 2 * factor)[:, None, None]
     params = np.empty((k, n_edges, 5))
     cov = np.empty((k, n_edges, 5, 5))
     for e in range(n_edges):
@@ -492,13 +502,11 @@ class _EdgeModel:
         band: np.float32,
         rho_limits: tuple[np.float32, np.float32],
         gaps: tuple[np.float32, np.float32],
-        sigma: float,
     ) -> None:
         self.signs = signs
         self.band = band
         self.rho_limits = rho_limits
         self.gaps = gaps
-        self.sigma = sigma
         self.n_edges = len(signs)
         self.npar = 5 * self.n_edges + 3
 
@@ -528,16 +536,19 @@ class _EdgeModel:
         mask &= (outer_g.rho <= hi) & (inner_g.rho >= lo)
         if n_edges == 1:
             mask &= np.abs(outer_g.d) <= band
-        # Where an unmodelled neighbouring edge comes within a few spreads (a thin annulus seen
-        # obliquely) its blur reaches this edge's pixels: leave those parts of the edge out.
+        # Where an unmodelled neighbouring edge comes within a few spreads of a pixel (a thin
+        # annulus seen obliquely, the paper's edge) its blur reaches the pixel: it is left out.
+        # Pixel by pixel, so that the pixels next to the fitted edge, which carry its position,
+        # stay when the band's far end goes: at 35 px a whole side went, the minor axis' ends of
+        # oblique views lost their outside (paper edge) or annulus pixels (code track), and the
+        # depth sd at 55-69 deg grew by half.
         least = f32(_MIN_GAP_SPREADS) * s
         beyond = outer_g.rho > f32(1.0)
-        mask &= ~beyond | (gap_out * outer_g.rho >= least * outer_g.gn)
-        # Pixels nearer the inner edge than the outer one (all of them for a single edge).
-        within = ~beyond
-        if n_edges > 1:
-            within &= np.abs(inner_g.d) < np.abs(outer_g.d)
-        mask &= ~within | (gap_in * inner_g.rho >= least * inner_g.gn)
+        # Distances to the neighbours, at rho 1 + gap_out of the outermost edge and 1 - gap_in
+        # of the innermost (level curves of rho: to first order).
+        far_out = (f32(1.0) + gap_out - outer_g.rho) * outer_g.rho >= least * outer_g.gn
+        far_in = (inner_g.rho - f32(1.0) + gap_in) * inner_g.rho >= least * inner_g.gn
+        mask &= np.where(beyond, far_out, far_in)
         step_sum = np.zeros_like(du0)
         gauss_l: list[NDArray[np.float32]] = []
         for sign, geo in zip(self.signs, geos, strict=True):
@@ -562,7 +573,8 @@ class _EdgeModel:
         *,
         levels_polarity: NDArray[np.float64] | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]]:
-        """``J^T J``, ``J^T r``, the pixel count and chi at ``theta`` (rows of the block).
+        """``J^T J``, ``J^T r``, the pixel count and the RMS residual at ``theta`` (rows of the
+        block).
 
         With ``levels_polarity`` (the first evaluation, at the seeds) the mid level and half
         contrast are first set in ``theta``, in place, by linear least squares at its geometry.
@@ -598,8 +610,8 @@ class _EdgeModel:
             normal += tie.normal
             rhs -= tie.gradient(theta)
         count = mask.sum(axis=1)
-        chi = np.sqrt(np.einsum("kl,kl->k", resid, resid) / np.maximum(count - npar, 1))
-        return normal, rhs, count.astype(np.intp), chi / self.sigma
+        rms = np.sqrt(np.einsum("kl,kl->k", resid, resid) / np.maximum(count - npar, 1))
+        return normal, rhs, count.astype(np.intp), rms.astype(np.float64)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -614,7 +626,9 @@ class _Tie:
     normal: NDArray[np.float64]
 
     @classmethod
-    def build(cls, seeds: NDArray[np.float64], npar: int, tie_px: float, sigma: float) -> _Tie:
+    def build(
+        cls, seeds: NDArray[np.float64], npar: int, tie_px: float, sigma: NDArray[np.float64]
+    ) -> _Tie:
         k = seeds.shape[0]
         ratio = seeds[:, 1, 2] / seeds[:, 0, 2]
         q_in = quadratic_form(seeds[:, 1, 2:5])
@@ -623,7 +637,7 @@ class _Tie:
         sd = np.empty((k, 5))
         sd[:, :2] = tie_px
         sd[:, 2:] = 2.0 * tie_px * (np.abs(q_in[:, [0, 0, 2]]) + 1e-12) / a_in[:, None]
-        w = sigma / sd
+        w = sigma[:, None] / sd
         jt = np.zeros((k, npar, 5))
         for i in range(5):
             jt[:, 5 + i, i] = w[:, i]
@@ -713,6 +727,12 @@ def _geometry(
     gn = np.maximum(np.sqrt(gx * gx + gy * gy), f32(1e-12))
     inv = f32(1.0) / gn
     d = (rho - f32(1.0)) * rho * inv
+    # Second order along the normal: the level curves of rho are scaled copies of the ellipse,
+    # not parallel to it, and off the axes the first-order distance falls short by a term in
+    # d^2 (a 34 x 14 px ellipse: 0.02-0.04 px at 1 px from it, either side), which pulled the
+    # fitted edges outwards. Zero on circles and on the axes.
+    gqg = A * gx * gx + f32(2.0) * B * gx * gy + C * gy * gy
+    d += f32(0.5) * d * d * (gqg * inv * inv - gn * gn / np.maximum(q, f32(1e-12))) * inv
     # First-order derivatives of the distance: d(q)/d(param) / (2 |grad q| / 2).
     half = f32(0.5) * inv
     dd = (-gx * inv, -gy * inv, du * du * half, du * dv * inv, dv * dv * half)

@@ -67,6 +67,20 @@ _MAX_CURVATURE_SPREAD = 0.35
 #: Lines whose residual exceeds this many robust sds are dropped before the second solve.
 _OUTLIER_SDS = 4.0
 _MIN_LINES = 12
+#: Largest relative difference of a partial edge's line step from the fit's typical one (a line
+#: crossing a sector boundary sees a fraction of the step).
+_ARC_HEIGHT_TOLERANCE = 0.2
+#: Lines (about a pixel apart) left out next to a partial edge's ends.
+_ARC_END_LINES = 1
+#: Prior sd (pixels) of a partial edge's RMS displacement from its seed over the whole ellipse.
+#: A few clustered arcs (a code with five black sectors side by side) leave some combinations
+#: of centre, size and shape nearly unmeasured, along which a free fit wanders off by tens of
+#: pixels; the tie holds those at the seed (the scaled pose circle, within a few tenths of a
+#: pixel) and leaves what the arcs measure (within hundredths) to the data. The covariance
+#: reported is the data's alone: large along what the arcs do not measure.
+_ARC_TIE_PX = 0.3
+#: Edge-position sd (pixels) of one line assumed before a partial fit's residuals measure it.
+_TIE_LINE_SD = 0.1
 #: Neighbouring lines share interpolated pixels: the residual sd, which takes them as
 #: independent, understates the fit's sd by about this factor (measured on renders).
 _CORRELATION = 1.2
@@ -154,21 +168,18 @@ def refine_by_profiles_f32(
     rho_range: tuple[float, float],
     passes: int = 4,
     spread: NDArray[np.float64] | None = None,
+    *,
+    partial: bool = False,
 ) -> EdgeFits:
     """:func:`refine_by_profiles` on a float32 image already converted (one conversion serves
     every circle of a frame); ``polarity`` is +1 where the inside is dark. ``spread``: the
     image blur of each fit where known (another edge of the same fiducial), used until the
-    fit's own lines measure it."""
+    fit's own lines measure it. ``partial``: the edge is printed only along parts of the
+    ellipse (a coding track's arcs): only lines whose step is near the largest ones' (within
+    :data:`_ARC_HEIGHT_TOLERANCE`) count, so no line across a sector boundary is used, and the
+    ellipse is tied to its seed (:data:`_ARC_TIE_PX`) along what those lines leave open."""
     n = seeds.shape[0]
-    out = EdgeFits(
-        params=np.full((n, 5), np.nan),
-        covariance=np.full((n, 5, 5), np.nan),
-        contrast=np.full(n, np.nan),
-        spread=np.full(n, np.nan),
-        chi=np.full(n, np.nan),
-        pixels=np.zeros(n, dtype=np.intp),
-        ok=np.zeros(n, dtype=bool),
-    )
+    out = EdgeFits.blank(n)
     usable = np.all(np.isfinite(seeds), axis=1) & (seeds[:, 3] > 1.0)
     usable &= seeds[:, 2] >= seeds[:, 3]
     idx = np.flatnonzero(usable)
@@ -181,7 +192,7 @@ def refine_by_profiles_f32(
         blk = order[first : first + _BLOCK]
         j = idx[blk]
         blur = None if spread is None else spread[j]
-        _fit_block(src, seeds[j], polarity[j], count[blk], rho_range, passes, blur, out, j)
+        _fit_block(src, seeds[j], polarity[j], count[blk], rho_range, passes, blur, out, j, partial)
     drift = np.max(np.abs(out.params[:, :4] - seeds[:, :4]), axis=1)
     # A fit that wandered off its seed by more than its windows was not fitting this edge.
     out.ok[:] &= np.nan_to_num(drift, nan=np.inf) <= 2.0 * MAX_WINDOW_PX
@@ -198,6 +209,7 @@ def _fit_block(
     known_blur: NDArray[np.float64] | None,
     out: EdgeFits,
     j: NDArray[np.intp],
+    partial: bool = False,
 ) -> None:
     """Fit one block of ellipses; results written into ``out`` at rows ``j``.
 
@@ -217,7 +229,9 @@ def _fit_block(
         coarse = coarse_seed and p == 0 and passes > 1
         c, b = cur[rows], blur[rows]
         if coarse:
-            n_lines, cap = np.maximum(count[rows] // _SPARSE, 16), np.full(rows.size, MAX_WINDOW_PX)
+            # Every line of a partial edge: a third of them may hold too few of its arcs.
+            sparse = count[rows] if partial else np.maximum(count[rows] // _SPARSE, 16)
+            n_lines, cap = sparse, np.full(rows.size, MAX_WINDOW_PX)
         else:
             # Windows that hold the edge's tails and little more: every sample in a window adds
             # noise to the area locator.
@@ -226,11 +240,25 @@ def _fit_block(
                 count[rows],
                 np.minimum(_WINDOW_SPREADS * np.sqrt(b**2 + box), MAX_WINDOW_PX),
             )
-        res = _pass(src, c, b, pol[rows], n_lines, rho_range, cap, measure_blur=coarse)
+        res = _pass(
+            src,
+            c,
+            b,
+            pol[rows],
+            n_lines,
+            rho_range,
+            cap,
+            measure_blur=coarse,
+            tie=seeds[rows] if partial else None,
+        )
         ok = res.ok & alive[rows]
         moved = np.max(np.abs(res.params[:, :4] - c[:, :4]), axis=1)
         cur[rows] = np.where(ok[:, None], res.params, c)
         blur[rows] = np.where(ok, res.spread, b)
+        if coarse and partial:
+            # A partial edge's coarse pass that found too little leaves the seed (the scaled
+            # pose circle, close) to the full passes.
+            continue
         alive[rows] = ok
         if coarse:
             continue
@@ -257,10 +285,13 @@ def _pass(
     cap: NDArray[np.float64],
     *,
     measure_blur: bool,
+    tie: NDArray[np.float64] | None = None,
 ) -> EdgeFits:
     """One sampling pass: lines on the current ellipses, edge positions, a least-squares step.
     Returns the stepped ellipses; ``spread`` is the blur, measured when ``measure_blur`` (wide
-    windows: the narrow ones of the final passes would feed back a truncated spread)."""
+    windows: the narrow ones of the final passes would feed back a truncated spread). ``tie``:
+    the seeds of a partial edge (see :func:`refine_by_profiles_f32`)."""
+    partial = tie is not None
     k = cur.shape[0]
     lines = _lines(cur, n_lines, rho_range, cap)
     mean, mass, m2 = _centroids(src, lines, pol)
@@ -268,6 +299,16 @@ def _pass(
     box = lines.step**2 / 12.0  # the forward differences' box
     good = lines.valid & np.isfinite(mean) & (mass > 0)
     sg = np.sqrt(blur[:, None] ** 2 + box)
+    if partial:
+        # Only lines across a printed part of the edge: steps (the mass over the fraction of
+        # a step centred in the window that the window holds) near the largest ones'. (Lines
+        # off the image or without a step give NaN, never near.)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            step = mass / np.maximum(_window_terms(lower, upper, sg, blur, cap)[0], 1e-6)
+        top = _upper_decile(step, good)
+        good &= np.abs(step - top[:, None]) <= 0.4 * top[:, None]
+        # Lines across white sectors have no centroid (nor any use below).
+        mean = np.where(good, mean, 0.0)
     if measure_blur:
         # From lines whose window holds both tails (at the assumed blur), their slight
         # truncation undone.
@@ -289,11 +330,16 @@ def _pass(
     # The step must be this fiducial's edge: its height near the fit's typical one.
     height = mass / np.maximum(z, 1e-6)
     typical = _mean(height, good)
-    good &= (height > 0.5 * typical[:, None]) & (height < 1.5 * typical[:, None])
+    if not partial:
+        good &= (height > 0.5 * typical[:, None]) & (height < 1.5 * typical[:, None])
+    else:
+        good &= np.abs(height - typical[:, None]) <= _ARC_HEIGHT_TOLERANCE * typical[:, None]
+        good = _inside_runs(good)
     # A blurred curved edge's centroid lies kappa s^2 / 2 inside it; then the linearised
     # distance d_new(origin) = jac . delta = -t.
     t = np.where(good, pos + 0.5 * lines.kappa * blur[:, None] ** 2, 0.0)
-    delta, cov_f, rms, used = _solve(lines.jac, t, good)
+    prior = None if tie is None else _tie(lines, cur, tie)
+    delta, cov_f, rms, used = _solve(lines.jac, t, good, prior)
     ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
     theta = np.zeros((k, 5))
     theta[:, 2:] = quadratic_form(cur[:, 2:5])
@@ -483,6 +529,28 @@ def _moment_weights() -> NDArray[np.float32]:
 _MOMENT_WEIGHTS = _moment_weights()
 
 
+def _inside_runs(good: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """The lines of a partial edge more than :data:`_ARC_END_LINES` from either end of their
+    run of good lines: near a sector's end the blurred corner bends the edge."""
+    m = good.shape[1]
+    idx = np.arange(m)
+    big = 4 * m
+    last_bad = np.maximum.accumulate(np.where(good, -big, idx), axis=1)
+    next_bad = np.minimum.accumulate(np.where(good, big, idx)[:, ::-1], axis=1)[:, ::-1]
+    inside = (idx - last_bad > _ARC_END_LINES) & (next_bad - idx > _ARC_END_LINES)
+    return np.asarray(good & inside, dtype=bool)
+
+
+def _upper_decile(values: NDArray[np.float64], good: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """90th percentile (the lower of the two nearest ranks) of ``values`` over the good lines
+    of each fit, NaN where none: one sort of all rows (NaN sorts last)."""
+    v = np.sort(np.where(good, values, np.nan), axis=1)
+    n = np.isfinite(v).sum(axis=1)
+    rank = np.maximum((0.9 * (n - 1)).astype(np.intp), 0)
+    top = np.take_along_axis(v, rank[:, None], axis=1)[:, 0]
+    return np.asarray(np.where(n > 0, top, np.nan), dtype=np.float64)
+
+
 def _mean(values: NDArray[np.float64], good: NDArray[np.bool_]) -> NDArray[np.float64]:
     """Mean of ``values`` over the good lines of each fit (NaN where none)."""
     n = good.sum(axis=1)
@@ -490,28 +558,57 @@ def _mean(values: NDArray[np.float64], good: NDArray[np.bool_]) -> NDArray[np.fl
         return np.where(good, values, 0.0).sum(axis=1) / n
 
 
+def _tie(
+    lines: _Lines, cur: NDArray[np.float64], seeds: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The prior of a partial edge's step, in the units of ``jac . delta = -t``: information
+    ``Q`` (k, 5, 5) of the mean squared edge displacement over all of each ellipse's lines
+    (:data:`_ARC_TIE_PX`) and the current ellipses' offsets ``theta - theta_seed`` (k, 5)."""
+    jw = lines.jac * lines.valid[:, :, None]
+    n = np.maximum(lines.valid.sum(axis=1), 1)
+    info = np.swapaxes(jw, 1, 2) @ lines.jac / (n * _ARC_TIE_PX**2)[:, None, None]
+    offset = np.empty((cur.shape[0], 5))
+    offset[:, :2] = cur[:, :2] - seeds[:, :2]
+    offset[:, 2:] = quadratic_form(cur[:, 2:5]) - quadratic_form(seeds[:, 2:5])
+    return info, offset
+
+
 def _solve(
-    jac: NDArray[np.float64], t: NDArray[np.float64], good: NDArray[np.bool_]
+    jac: NDArray[np.float64],
+    t: NDArray[np.float64],
+    good: NDArray[np.bool_],
+    prior: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
     """Least squares ``jac . delta = -t`` per fit over the good lines, then once more without
     the lines beyond :data:`_OUTLIER_SDS` robust sds: the step, its covariance (the positions'
-    variance from the residuals), the RMS residual and the lines used."""
+    variance from the residuals), the RMS residual and the lines used. ``prior``: information
+    ``Q`` and current offsets ``o`` from the seeds (:func:`_tie`); the step then also pays
+    ``(o + delta)^T Q (o + delta)``, and the covariance is still the lines' alone."""
     k = jac.shape[0]
     jw = jac * good[:, :, None]
     jwt = np.swapaxes(jw, 1, 2)
     normal = jwt @ jac
     rhs = -(jwt @ t[:, :, None])[:, :, 0]
     use = good
+    # A partial edge's lines are weighed against its prior by their sd: assumed in the first
+    # round, the residuals' in the second.
+    sd = np.full(k, _TIE_LINE_SD)
     for rnd in range(2):
         used = use.sum(axis=1)
         solvable = used >= _MIN_LINES
         delta = np.full((k, 5), np.nan)
         if np.any(solvable):
+            lhs, right = normal[solvable], rhs[solvable]
+            if prior is not None:
+                q, o = prior[0][solvable], prior[1][solvable]
+                scale = np.maximum(sd[solvable], 1e-3)[:, None, None] ** 2
+                lhs = lhs + scale * q
+                right = right - (scale * (q @ o[:, :, None]))[:, :, 0]
             delta[solvable] = per_matrix(
                 lambda a, v: np.linalg.solve(a, v[..., None])[..., 0],
                 (int(solvable.sum()), 5),
-                normal[solvable],
-                rhs[solvable],
+                lhs,
+                right,
             )
         resid = np.where(use, t + (jac @ np.nan_to_num(delta)[:, :, None])[:, :, 0], 0.0)
         sd = np.sqrt((resid * resid).sum(axis=1) / np.maximum(used - 5, 1))

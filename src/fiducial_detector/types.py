@@ -81,8 +81,10 @@ class FiducialDetection:
     center_px : (float, float)
         Centre ``(u, v)`` of the pose ellipse, pixels.
     ellipses : tuple of Ellipse
-        Ellipses fitted to the design's printed circles, largest first; ``ellipses[0]`` is the pose
-        circle's.
+        Ellipses fitted to the design's printed circles, largest first (``ellipses[0]`` is the
+        pose circle's), then to its coding-track arcs where fitted (the ``dot`` design's track's
+        outer edge, radius 1.0, larger than its pose circle; see
+        :func:`fiducial_detector.detect.fit_arcs`).
     contrast : float
         White level minus black level around the fiducial, as a fraction of the image's full scale.
     design : str

@@ -16,10 +16,13 @@ the TRIP method). Here every fitted concentric circle of the design contributes:
 4. **Joint refinement over all circles.** Gauss-Newton adjusts the better candidate's centre (3-D)
    and normal (2 angles) to all circles at once. Because the model predicts whole conics, the image
    of the true centre (not the ellipse centre, under perspective) is used implicitly: no
-   eccentricity bias. Depth comes from the pose circle, the largest: the inner circles' radii are
-   nuisance parameters and their fits carry a systematic floor (:data:`INNER_FLOOR_PX`), so that
-   their edge biases (coding track nearby, toner spread) cannot pull z while they still fix the
-   centre's image and the normal.
+   eccentricity bias. Depth comes from the pose circle, the largest full circle: the inner
+   circles' radii are nuisance parameters and their fits carry a systematic floor
+   (:data:`INNER_FLOOR_PX`), so that their edge biases (coding track nearby, toner spread)
+   cannot pull z while they still fix the centre's image and the normal. Circles larger than
+   the pose circle - the ``dot`` design's coding-track arcs, fitted only where its sectors are
+   black - keep their printed radius and their fits' own covariance (large along what the arcs
+   leave unmeasured): with 3.3 times the dot's radius they carry the depth.
 5. **Honest covariance.** The position covariance is the estimator's own (sandwich) covariance
    under the fits' covariances. When the two candidates fit (almost) equally well - a design with a
    single circle, or a nearly fronto-parallel view - the result is their likelihood-weighted
@@ -351,7 +354,8 @@ def estimate_arrays(
     ----------
     obs : (N, K, 5) ndarray
         Fitted ellipses ``(u, v, s11, s12, s22)`` in distorted pixels; circle 0 is the pose circle.
-        NaN rows mark circles that were not fitted.
+        NaN rows mark circles that were not fitted. Circles larger than the pose circle (coding-
+        track arcs) keep their printed radius and get no floor (see the module notes).
     cov : (N, K, 5, 5) ndarray
         Their covariances (NaN or non-positive-definite: :data:`DEFAULT_SIGMA_PX` is assumed).
     radius_mm : (N, K) ndarray
@@ -361,8 +365,8 @@ def estimate_arrays(
         Gauss-Newton steps from the closed-form solution (the problem is nearly linear there).
     free_scale : bool
         Estimate the inner circles' radii instead of trusting their printed values: depth then
-        comes from the pose circle alone, immune to size biases of inner edges (see
-        :func:`_gauss_newton`); False uses every circle's printed radius.
+        comes from the pose circle (and any larger arcs) alone, immune to size biases of inner
+        edges (see :func:`_gauss_newton`); False uses every circle's printed radius.
     inner_floor_px : float
         Systematic standard deviation added to each inner circle's parameters, pixels.
 
@@ -399,10 +403,14 @@ def estimate_arrays(
     # the pose circle is what tells the candidates apart); the refinement adds the systematic
     # floor to the inner circles, as a scalar deflation (sigma^2 / (sigma^2 + floor^2)).
     lam = np.ones((kc, n))
+    # Circles larger than the pose circle (a ``dot`` fiducial's coding-track arcs) keep their
+    # printed radius and their fits' own covariance: they carry depth (see ``_gauss_newton``).
+    sized = np.where(present, r_t, 0.0)
+    arcs = sized > sized[:1] * (1.0 + 1e-9)
     if kc > 1 and inner_floor_px > 0:
         c = cov_t[:, :, 1:]
         var = (c[0, 0] + c[1, 1] + c[2, 2] + c[3, 3] + c[4, 4]) / 5.0
-        lam[1:] = var / (var + inner_floor_px**2)
+        lam[1:] = np.where(arcs[1:], 1.0, var / (var + inner_floor_px**2))
     # Work in normalised coordinates (K = I): an affine change of the observations. (The
     # covariances are inverted in place: cov_t is not used after this.)
     obs_n, W = _to_normalised(safe_obs, _information(cov_t), K)
@@ -439,6 +447,7 @@ def estimate_arrays(
     first = map_image(image, lambda a: np.where(chosen, a[0], a[1]))  # (K, N) arrays
     if not keep.all():
         obs_n, W, lam, safe_r = obs_n[:, keep], W[:, :, keep], lam[keep], safe_r[keep]
+        arcs = arcs[keep]
         first = map_image(first, lambda a: a[keep])
     c_best, normal, cov_c, chi2 = _gauss_newton(
         obs_n,
@@ -450,6 +459,7 @@ def estimate_arrays(
         iterations,
         free_scale,
         first_image=first,
+        fixed=arcs if arcs.any() else None,
     )
     cov_best = 0.5 * (cov_c + np.swapaxes(cov_c, 0, 1))  # (3, 3, N)
     c = centers.copy()
@@ -682,6 +692,7 @@ def _gauss_newton(
     iterations: int,
     free_scale: bool = True,
     first_image: CircleImage | None = None,
+    fixed: NDArray[np.bool_] | None = None,
 ) -> tuple[F64, F64, F64, F64]:
     """Refine circle centres and normals (``(3, N)``) against all circles of each fiducial.
 
@@ -694,7 +705,8 @@ def _gauss_newton(
     With ``free_scale`` the radii of circles ``1..K-1`` are nuisance parameters (their scale
     relative to the printed value is estimated): they still fix the centre's image and the normal,
     but depth comes from the pose circle alone, so a size bias of the inner edges (toner spread,
-    blur of a nearby track) cannot leak into z. ``iterations >= 1``.
+    blur of a nearby track) cannot leak into z. ``fixed`` ``(K, N)`` marks further circles whose
+    printed radius is kept (coding-track arcs larger than the pose circle). ``iterations >= 1``.
 
     Each scale belongs to one circle only, so it is profiled out in closed form (a Schur
     complement): circle ``k``'s weight becomes ``P = W - W d d^T W / (d^T W d)`` with ``d`` its
@@ -734,6 +746,8 @@ def _gauss_newton(
         if extra:
             ds = jac[:, 5]  # (5, K, N)
             ds[:, 0] = 0.0
+            if fixed is not None:
+                ds[:, fixed] = 0.0
         check = res.sum() + jac.sum()  # (one pass over the contiguous whole, ds included)
         if not np.isfinite(check):  # degenerate predictions contribute nothing
             J = np.where(np.isfinite(J), J, 0.0)

@@ -114,14 +114,16 @@ def test_dot_35px_at_70_deg_touching_its_track(noise: float) -> None:
 
 @pytest.mark.parametrize("design", ["ring", "dot"])
 def test_ellipses_and_centre_against_truth(design: str) -> None:
-    """Every printed circle is fitted, largest first, close to its true image conic."""
+    """Every printed circle is fitted, largest first, close to its true image conic (then the
+    ``dot`` design's track arc, see :func:`test_dot_track_arc_against_truth`)."""
     spec = get_design(design)
     for seed in range(3):
         scene = _one(design, 60, 40, seed, blur=0.5, noise=0.01)
         (det,) = detect(scene.image)
-        assert [e.radius for e in det.ellipses] == [c.radius for c in spec.circles]
+        assert [e.radius for e in det.ellipses] == [c.radius for c in (*spec.circles, *spec.arcs)]
         assert det.center_px == det.ellipses[0].center_px
-        for ell, conic in zip(det.ellipses, scene.truth[0].conics, strict=True):
+        full = det.ellipses[: len(spec.circles)]
+        for ell, conic in zip(full, scene.truth[0].conics, strict=True):
             u, v, a, b, _ = ellipse_from_conic(conic)
             # The fitted ellipse centre vs the true image ellipse's centre: sub-pixel.
             assert np.hypot(ell.center_px[0] - u, ell.center_px[1] - v) < 0.1
@@ -131,6 +133,31 @@ def test_ellipses_and_centre_against_truth(design: str) -> None:
         # The pose ellipse's centre is near the true projected centre (perspective offset only).
         assert np.hypot(*(np.asarray(det.center_px) - scene.truth[0].center_px)) < 0.3
         assert 0.6 < det.contrast < 0.8  # rendered white 0.85 - black 0.12, blurred
+
+
+@pytest.mark.parametrize(("size", "slant"), [(60, 40.0), (120, 20.0), (60, 65.0), (45, 55.0)])
+def test_dot_track_arc_against_truth(size: float, slant: float) -> None:
+    """A ``dot`` detection carries its coding track's outer edge (fitted on the black sectors
+    only) after its dot: close to the true image of the radius-1 circle where the arcs measure
+    it, with a covariance that says how closely (chi-square of the error under it), and the
+    full circles unchanged in front."""
+    for seed in range(3):
+        scene = _one("dot", size, slant, 10 + seed, blur=0.5, noise=0.01, code=5)
+        (det,) = detect(scene.image)
+        assert [e.radius for e in det.ellipses] == [0.30, 1.0]
+        assert det.center_px == det.ellipses[0].center_px
+        arc = det.ellipses[1]
+        u, v, a, b, angle = ellipse_from_conic(scene.truth[0].arc_conics[0])
+        err = np.array([arc.center_px[0] - u, arc.center_px[1] - v, arc.semi_major - a])
+        err = np.append(
+            err, [arc.semi_minor - b, (arc.angle - angle + np.pi / 2) % np.pi - np.pi / 2]
+        )
+        # Five black sectors of 16 (code 5, the fewest in the codebook), three of them side by
+        # side: some directions are barely measured (large variance), the others within a few
+        # hundredths of a pixel.
+        chi2 = float(err @ np.linalg.solve(arc.covariance, err))
+        assert chi2 < 25.0, (seed, err, chi2)
+        assert np.min(np.sqrt(np.linalg.eigvalsh(arc.covariance[:4, :4]))) < 0.02
 
 
 def test_rotation_fronto_parallel() -> None:

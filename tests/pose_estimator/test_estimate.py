@@ -193,6 +193,36 @@ def test_end_to_end_through_the_detector(design: str, slant_deg: float) -> None:
     assert np.all(sig[:, 2] < 1.0)
 
 
+def test_dot_track_arcs_carry_the_depth() -> None:
+    """``dot`` design: the coding track's outer edge (3.3 times the dot, fitted on its black
+    sectors) enters as a concentric circle of known radius and carries the depth: z scatter and
+    predicted sd well below the dot's alone, the predicted sd honest, no bias."""
+    from dataclasses import replace
+
+    from armourcam.render import render
+    from fiducial_detector import detect
+
+    z = F_PX * 7.1 / 120.0
+    cam = CameraModel.ideal(180, 180, F_PX)
+    target = _target("dot", 40.0, (0.2, -0.1, z))
+    rng = np.random.default_rng(5)
+    both, alone = [], []
+    for _ in range(8):
+        scene = render(cam, [target], blur_sigma=0.5, noise=0.01, rng=rng)
+        (det,) = detect(scene.image, design="dot")
+        assert [e.radius for e in det.ellipses] == [0.30, 1.0]
+        (with_arc,) = estimate([det], cam, 7.1)
+        (dot_only,) = estimate([replace(det, ellipses=det.ellipses[:1])], cam, 7.1)
+        both.append((with_arc.position_mm[2] - z, with_arc.sigma_mm[2]))
+        alone.append((dot_only.position_mm[2] - z, dot_only.sigma_mm[2]))
+    err, sig = np.array(both).T
+    err_dot, sig_dot = np.array(alone).T
+    assert np.median(sig) < 0.5 * np.median(sig_dot)
+    assert np.sqrt(np.mean(err**2)) < 0.5 * np.sqrt(np.mean(err_dot**2))
+    assert np.all(np.abs(err) < 4.0 * sig)
+    assert abs(np.mean(err)) < 2.0 * np.median(sig)
+
+
 def test_end_to_end_with_lens_distortion() -> None:
     """A fiducial in a strongly distorted corner, rendered through the lens, detected and posed."""
     K = np.array([[1500.0, 0.0, 319.5], [0.0, 1500.0, 239.5], [0.0, 0.0, 1.0]])
