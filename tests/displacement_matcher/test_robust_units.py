@@ -16,11 +16,13 @@ from typing import Any
 import numpy as np
 import pytest
 from matcher_synth import realistic_cov
+from numpy.typing import NDArray
 
 from armourcam.field import dolos_geometry
 from displacement_matcher import match
 from displacement_matcher.damage import assess, thresholds
 from displacement_matcher.refine import match_units
+from displacement_matcher.types import UnitMotion
 from displacement_matcher.units import (
     group_fiducials,
     mirror_normals,
@@ -367,19 +369,36 @@ def test_mover_keeps_its_face_from_the_unit_it_came_to_rest_in_front_of() -> Non
     other face (code 17): the face is the mover's, the covered unit is lost, not displaced,
     and the mover is displaced by its true motion, measured on both faces.
     """
+    mover, still, displaced = _mover_in_front_of_covered_unit(R0)
+    assert displaced == 1
+    assert mover.status == "displaced" and mover.n_matched == 2
+    np.testing.assert_allclose(mover.translation_mm, _MOVE, atol=1.0)
+    assert still.status == "lost"
+
+
+#: The mover's translation in the scenes of :func:`_mover_in_front_of_covered_unit`.
+_MOVE = np.array([-30.0, 0.0, -30.0])
+
+
+def _mover_in_front_of_covered_unit(
+    rotation_after: NDArray[np.float64], flip_face: bool = False
+) -> tuple[UnitMotion, UnitMotion, int]:
+    """A unit seen through codes 17 and 29 moves by :data:`_MOVE` to orientation
+    ``rotation_after`` and comes to rest in front of a still unit seen through codes 3 and 29,
+    which it covers (``flip_face``: the moved code-29 face's normal on the other branch of the
+    circle pose's ambiguity). The assessed mover, still unit and displaced count."""
     a, m = np.array([0.0, 0.0, 1800.0]), np.array([45.0, 0.0, 1800.0])
-    move = np.array([-30.0, 0.0, -30.0])
     covered = [p for p in _unit(a, R0) if p.code in (3, 29)]
     mover_before = [p for p in _unit(m, R0) if p.code in (17, 29)]
-    mover_after = [p for p in _unit(m + move, R0) if p.code in (17, 29)]
+    mover_after = [p for p in _unit(m + _MOVE, rotation_after) if p.code in (17, 29)]
+    assert [p.code for p in mover_after] == [17, 29]
+    if flip_face:
+        mover_after[1] = _flip_normal(mover_after[1])
     an = match_units(covered + mover_before, mover_after, unit_map=UMAP, gate_mm=50.0)
     units, summary = assess(an.units, thresholds(GEO.dn_mm))
     mover = next(u for u in units if set(u.baseline_indices) == {2, 3})
     still = next(u for u in units if set(u.baseline_indices) == {0, 1})
-    assert summary.displaced_units == 1
-    assert mover.status == "displaced" and mover.n_matched == 2
-    np.testing.assert_allclose(mover.translation_mm, move, atol=1.0)
-    assert still.status == "lost"
+    return mover, still, summary.displaced_units
 
 
 @pytest.mark.parametrize("flipped", [False, True])
@@ -396,19 +415,8 @@ def test_turned_mover_seen_through_one_face_keeps_its_other_face(
     the face there: it is the mover's, which is displaced with both faces, and the covered unit
     is not displaced. Also with the face's normal on the other branch of the circle pose's
     two-fold ambiguity (``flipped``), which no rotation of the pair's normals explains."""
-    a, m = np.array([0.0, 0.0, 1800.0]), np.array([45.0, 0.0, 1800.0])
-    move = np.array([-30.0, 0.0, -30.0])
-    covered = [p for p in _unit(a, R0) if p.code in (3, 29)]
-    mover_before = [p for p in _unit(m, R0) if p.code in (17, 29)]
-    mover_after = [p for p in _unit(m + move, _rot(axis, deg) @ R0) if p.code in (17, 29)]
-    assert [p.code for p in mover_after] == [17, 29]
-    if flipped:
-        mover_after[1] = _flip_normal(mover_after[1])
-    an = match_units(covered + mover_before, mover_after, unit_map=UMAP, gate_mm=50.0)
-    units, summary = assess(an.units, thresholds(GEO.dn_mm))
-    mover = next(u for u in units if set(u.baseline_indices) == {2, 3})
-    still = next(u for u in units if set(u.baseline_indices) == {0, 1})
-    assert summary.displaced_units == 1
+    mover, still, displaced = _mover_in_front_of_covered_unit(_rot(axis, deg) @ R0, flipped)
+    assert displaced == 1
     assert mover.status == "displaced" and mover.n_matched == 2
     assert mover.rotation_deg == pytest.approx(deg, abs=2.0)
     assert still.status == "lost"
