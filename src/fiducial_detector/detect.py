@@ -108,10 +108,13 @@ EDGE_BAND_PX = 2.0
 #: on the bundled session bag (33-36 px, JPEG quality 92) that leaves wrong matches at 0 and the
 #: displaced units as they were, and brings the displacement errors' median from 0.16 to 0.11 mm.
 EDGE_MODEL_MIN_RADIUS_PX = 20.0
-#: Gauss-Newton iterations of the annulus model (fits leave once converged). A small fiducial's
-#: seed is its boundary's moment ellipse, up to 1.5 px off: at 34 px and 40 deg such a seed had
-#: not converged after 4 (scale 0.08-0.12 px off), and was within 0.01 px after 8.
-ANNULUS_ITERATIONS = 8
+#: Gauss-Newton iterations of the annulus model below the edge model's smallest size (4 above
+#: it; fits leave once converged). A small fiducial's seed is its boundary's moment ellipse, up
+#: to 1.5 px off: at 34 px and 40 deg such a seed had not converged after 4 (scale 0.08-0.12 px
+#: off), and was within 0.01 px after 8. Larger ones start from seeds good to a fraction of a
+#: pixel (the profile fit's, or a boundary whose pixels are smaller relative to it); 8 there
+#: cost the 6 MP graph 14 ms per frame, and the quick pose tables at 45-120 px agree within 3 %.
+SMALL_ANNULUS_ITERATIONS = 8
 #: Below the edge model's smallest size, annulus fits whose RMS residual exceeds this many times
 #: the median of the image's fits (at least the noise) are replaced by the dual conic.
 ANNULUS_OUTLIER_CHI = 3.0
@@ -719,7 +722,7 @@ def _fit_small_annulus(
     # and the offset between concentric circles' centres that perspective makes is what tells
     # the pose's two solutions apart (with it, 48 % of the field's normals were over 10 deg off,
     # against 35 % with the dual conic's).
-    pose, _ = _refine_annulus(grey, noise, design, seeds, inner_seeds)
+    pose, _ = _refine_annulus(grey, noise, design, seeds, inner_seeds, SMALL_ANNULUS_ITERATIONS)
     # A fit whose residuals far exceed the other fiducials' in the image was not fitting an
     # annulus (one partly covered by a neighbour: RMS 23-49 noise sds against 1-1.3 on the
     # synthetic field, 5-6 on the JPEG session bag, and 3-9 mm off in depth); the dual conic,
@@ -936,8 +939,10 @@ def _refine_annulus(
     design: FiducialDesign,
     outer_seeds: NDArray[Any],
     inner_seeds: NDArray[Any],
+    iterations: int = 4,
 ) -> tuple[list[Ellipse | None], list[Ellipse | None]]:
-    """Both edges of the ring design's annulus (circles 0 and 1) from ``(n, 5)`` seeds."""
+    """Both edges of the ring design's annulus (circles 0 and 1) from ``(n, 5)`` seeds, by at
+    most ``iterations`` Gauss-Newton steps."""
     c_out, c_in = design.circles[0], design.circles[1]
     inside, _ = design.neighbour_edges(c_in.radius)
     _, outside = design.neighbour_edges(c_out.radius)
@@ -952,7 +957,7 @@ def _refine_annulus(
             1.0 - 0.5 * (c_in.radius - inside) / c_in.radius,
             1.0 + 0.5 * (outside - c_out.radius) / c_out.radius,
         ),
-        iterations=ANNULUS_ITERATIONS,
+        iterations=iterations,
     )
     pose = _ellipses(fo, c_out.radius, keep=_plausible_rows(fo.params, outer_seeds))
     second = _ellipses(fi, c_in.radius, keep=_plausible_rows(fi.params, inner_seeds))
