@@ -104,6 +104,12 @@ class FiducialDesign:
         outer = min((e for e in edges if e > radius + 1e-9), default=PAPER_RADIUS)
         return inner, outer
 
+    def half_way(self, radius: float) -> tuple[float, float]:
+        """Half-way to the nearest printed edges inside and outside a circle of this design, in
+        units of its own radius (the ``rho_range`` an edge fit's pixels or lines stay within)."""
+        inner, outer = self.neighbour_edges(radius)
+        return 1.0 - 0.5 * (radius - inner) / radius, 1.0 + 0.5 * (outer - radius) / radius
+
 
 #: Radius (fraction of the outer radius) of the white paper left around every printed target: the
 #: sheet's cut marks leave 15 % of the diameter on each side (``armourcam.printing.CUT_MARGIN``).

@@ -654,13 +654,12 @@ def fit_arcs(
     for arc in design.arcs:
         seeds = base.copy()
         seeds[:, 2:4] *= arc.radius / r0
-        inner, outer = design.neighbour_edges(arc.radius)
         r = arc.radius
         res = refine_by_profiles_f32(
             src,
             seeds,
             np.full(len(seeds), 1.0 if arc.dark_inside else -1.0),
-            (1.0 - 0.5 * (r - inner) / r, 1.0 + 0.5 * (outer - r) / r),
+            design.half_way(r),
             passes=ARC_PASSES,
             partial=True,
         )
@@ -803,10 +802,8 @@ def _profile_circle(
 ) -> EdgeFits:
     """Edge-profile fits of circle ``k`` of ``design`` from ``(n, 5)`` seeds."""
     circle = design.circles[k]
-    inner, outer = design.neighbour_edges(circle.radius)
-    r = circle.radius
     polarity = np.full(len(seeds), 1.0 if circle.dark_inside else -1.0)
-    rho = (1.0 - 0.5 * (r - inner) / r, 1.0 + 0.5 * (outer - r) / r)
+    rho = design.half_way(circle.radius)
     # Circles seeded from the fitted pose circle (blur known) are within a tenth of a pixel
     # (perspective): one pass, whose first-order window corrections hold that far.
     passes = 4 if blur is None else 1
@@ -944,8 +941,6 @@ def _refine_annulus(
     """Both edges of the ring design's annulus (circles 0 and 1) from ``(n, 5)`` seeds, by at
     most ``iterations`` Gauss-Newton steps."""
     c_out, c_in = design.circles[0], design.circles[1]
-    inside, _ = design.neighbour_edges(c_in.radius)
-    _, outside = design.neighbour_edges(c_out.radius)
     fo, fi = refine_annuli(
         grey,
         outer_seeds,
@@ -953,10 +948,7 @@ def _refine_annulus(
         dark_annulus=c_out.dark_inside,
         noise_std=noise,
         band_px=EDGE_BAND_PX,
-        rho_range=(
-            1.0 - 0.5 * (c_in.radius - inside) / c_in.radius,
-            1.0 + 0.5 * (outside - c_out.radius) / c_out.radius,
-        ),
+        rho_range=(design.half_way(c_in.radius)[0], design.half_way(c_out.radius)[1]),
         iterations=iterations,
     )
     pose = _ellipses(fo, c_out.radius, keep=_plausible_rows(fo.params, outer_seeds))
@@ -970,7 +962,6 @@ def _refine_circle(
     """Maximum-likelihood fits of circle ``k`` of ``design`` from ``(n, 5)`` seeds (None where a
     fit failed or strayed from its seed)."""
     circle = design.circles[k]
-    inner, outer = design.neighbour_edges(circle.radius)
     r = circle.radius
     fits = refine_ellipses(
         grey,
@@ -978,7 +969,7 @@ def _refine_circle(
         dark_inside=circle.dark_inside,
         noise_std=noise,
         band_px=EDGE_BAND_PX,
-        rho_range=(1.0 - 0.5 * (r - inner) / r, 1.0 + 0.5 * (outer - r) / r),
+        rho_range=design.half_way(r),
     )
     return _ellipses(fits, r, keep=_plausible_rows(fits.params, seeds))
 

@@ -170,9 +170,8 @@ def refine_ellipses(
     """
     seeds = checked_seeds(seeds)
     polarity = polarity_signs(dark_inside, seeds.shape[0])
-    sigma = checked_noise(noise_std, seeds.shape[0])
     return _refine(
-        image, seeds[:, None, :], (1.0,), polarity, sigma, band_px, rho_range, iterations
+        image, seeds[:, None, :], (1.0,), polarity, noise_std, band_px, rho_range, iterations
     )[0]
 
 
@@ -230,13 +229,12 @@ def refine_annuli(
     polarity = np.full(outer.shape[0], 1.0 if dark_annulus else -1.0)
     if not tie_px > 0:
         raise DetectorError(f"tie_px must be positive, got {tie_px}")
-    sigma = checked_noise(noise_std, outer.shape[0])
     fits = _refine(
         image,
         np.stack([outer, inner], axis=1),
         (1.0, -1.0),
         polarity,
-        sigma,
+        noise_std,
         band_px,
         rho_range,
         iterations,
@@ -263,13 +261,6 @@ def checked_seeds(seeds: NDArray[Any]) -> NDArray[np.float64]:
     return out
 
 
-def checked_noise(noise_std: float, n: int) -> NDArray[np.float64]:
-    """``noise_std``, a positive number, as one value per fit."""
-    if not (np.isfinite(noise_std) and noise_std > 0):
-        raise DetectorError(f"noise_std must be a positive number, got {noise_std}")
-    return np.full(n, float(noise_std))
-
-
 def checked_rho_range(rho_range: tuple[float, float]) -> tuple[float, float]:
     """``rho_range`` as ``(lo, hi)`` with ``0 <= lo < 1 < hi``."""
     lo, hi = (float(x) for x in rho_range)
@@ -288,15 +279,17 @@ def _refine(
     seeds: NDArray[np.float64],
     signs: tuple[float, ...],
     polarity: NDArray[np.float64],
-    sigma: NDArray[np.float64],
+    noise_std: float,
     band_px: float,
     rho_range: tuple[float, float],
     iterations: int,
     tie_px: float = 0.0,
 ) -> list[EdgeFits]:
     """Common core: ``seeds`` is ``(n, E, 5)``, outermost edge first; ``signs`` the sign of each
-    edge's step in the model (+1 the outermost); ``sigma`` the noise sd of each fit."""
+    edge's step in the model (+1 the outermost)."""
     img = checked_image(image)
+    if not (np.isfinite(noise_std) and noise_std > 0):
+        raise DetectorError(f"noise_std must be a positive number, got {noise_std}")
     if iterations < 1:
         raise DetectorError(f"iterations must be at least 1, got {iterations}")
     if not band_px >= 1.0:
@@ -341,7 +334,7 @@ def _refine(
             band_px,
             (lo, hi),
             polarity[idx[blk]],
-            sigma[idx[blk]],
+            float(noise_std),
             iterations,
             tie_px,
         )
@@ -379,7 +372,7 @@ def _gauss_newton(
     band: float,
     rho_range: tuple[float, float],
     polarity: NDArray[np.float64],
-    sigma: NDArray[np.float64],
+    sigma: float,
     iterations: int,
     tie_px: float,
 ) -> _BlockFit:
@@ -433,7 +426,7 @@ def _gauss_newton(
         )
         if it == 0:
             theta[rows] = theta_rows  # with the levels the first evaluation started from
-        normal[rows], count[rows], chi[rows] = nrm, cnt, rms_rows / sigma[rows]
+        normal[rows], count[rows], chi[rows] = nrm, cnt, rms_rows / sigma
         if it == iterations:
             break
         # Marquardt damping of the diagonal keeps early steps short where the model is poor.
@@ -473,7 +466,7 @@ def _gauss_newton(
         # A posteriori variance factor: residuals beyond the image noise (compression
         # artefacts, model misfit) widen the covariance; it is never narrowed below the noise.
         factor = np.maximum(np.nan_to_num(chi[good], nan=1.0), 1.0) ** 2
-        cov_all[good] = _safe_inverse(normal[good]) * (sigma[good] ** 2 * factor)[:, None, None]
+        cov_all[good] = _safe_inverse(normal[good]) * (sigma * sigma * factor)[:, None, None]
     params = np.empty((k, n_edges, 5))
     cov = np.empty((k, n_edges, 5, 5))
     for e in range(n_edges):
@@ -626,9 +619,7 @@ class _Tie:
     normal: NDArray[np.float64]
 
     @classmethod
-    def build(
-        cls, seeds: NDArray[np.float64], npar: int, tie_px: float, sigma: NDArray[np.float64]
-    ) -> _Tie:
+    def build(cls, seeds: NDArray[np.float64], npar: int, tie_px: float, sigma: float) -> _Tie:
         k = seeds.shape[0]
         ratio = seeds[:, 1, 2] / seeds[:, 0, 2]
         q_in = quadratic_form(seeds[:, 1, 2:5])
@@ -637,7 +628,7 @@ class _Tie:
         sd = np.empty((k, 5))
         sd[:, :2] = tie_px
         sd[:, 2:] = 2.0 * tie_px * (np.abs(q_in[:, [0, 0, 2]]) + 1e-12) / a_in[:, None]
-        w = sigma[:, None] / sd
+        w = sigma / sd
         jt = np.zeros((k, npar, 5))
         for i in range(5):
             jt[:, 5 + i, i] = w[:, i]
