@@ -42,7 +42,8 @@ at the same reference point) per camera axis, median of |error|, RMS and max ove
 grouped, not overturned units whose motion was measured, mm. Truth "displaced": overturned, or
 the unit's centre moved >= 1 Dn.
 
-Run: ``.venv/bin/python -m benchmarks.matcher_field [--seeds 3] [--source noisy|e2e]``.
+Run: ``.venv/bin/python -m benchmarks.matcher_field [--seeds 3] [--source noisy|e2e]
+[--image-fit]``.
 """
 
 from __future__ import annotations
@@ -293,17 +294,23 @@ def poses_noisy(field: Field, seed: int) -> tuple[list, list, NDArray, NDArray]:
     )
 
 
-def poses_e2e(field: Field, seed: int, diameter_mm: float) -> tuple[list, list, NDArray, NDArray]:
-    """Render, detect and estimate both states; tie poses to truth fiducials by image position."""
+def poses_e2e(
+    field: Field, seed: int, diameter_mm: float, image_fit: bool = False
+) -> tuple[list, list, NDArray, NDArray]:
+    """Render, detect and estimate both states (refined by the image fit when ``image_fit``);
+    tie poses to truth fiducials by image position."""
     from armourcam.render import render
     from fiducial_detector.detect import detect
     from pose_estimator.estimate import estimate
+    from pose_estimator.image_fit import refine_from_image
 
     out: list = []
     for k, state in enumerate((field.before, field.after)):
         rng = np.random.default_rng(2000 + 2 * seed + k)
         scene = render(field.camera, state.targets("ring"), blur_sigma=0.5, noise=0.01, rng=rng)
         poses = estimate(detect(scene.image), field.camera, diameter_mm)
+        if image_fit:
+            poses = refine_from_image(scene.image, poses, field.camera, diameter_mm)
         # Tie to every rendered fiducial: a partly occluded one may still be detected.
         ids = state.visible_ids
         uv_true = field.camera.project(state.position_mm[ids])
@@ -342,10 +349,16 @@ def pose_quality(state: FieldState, poses: Sequence[FiducialPose], ids: NDArray)
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds FIRST .. FIRST + N - 1")
     ap.add_argument("--units", type=int, default=300)
     ap.add_argument("--source", choices=("noisy", "e2e"), default="noisy")
     ap.add_argument("--diameter-mm", type=float, default=10.0, help="printed diameter")
     ap.add_argument("--verbose", action="store_true", help="list missed/false displaced units")
+    ap.add_argument(
+        "--image-fit",
+        action="store_true",
+        help="e2e: refine every pose by the image fit (pose_estimator.image_fit)",
+    )
     ap.add_argument(
         "--band-dn",
         type=float,
@@ -357,6 +370,7 @@ def main() -> None:
         f"dolos fields: {args.units} units x 4 codes, 10 % moved <= 2 Dn, 2 % overturned, 5 % "
         f"hidden; poses: {args.source}"
         + (f" (ring, {args.diameter_mm} mm, blur 0.5, noise 1 %)" if args.source == "e2e" else "")
+        + (", image fit" if args.image_fit else "")
     )
     print(
         f"{'seed':>4} {'method':>9} {'right %':>7} {'right<NN/2 %':>12} {'still->disp':>11} "
@@ -365,12 +379,12 @@ def main() -> None:
         f"{'err rms x/y/z mm':>18} {'err max x/y/z mm':>18} "
         f"{'time s':>6}"
     )
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         field = make_field(args.units, seed=seed, diameter_mm=args.diameter_mm)
         if args.source == "noisy":
             base, cur, bid, cid = poses_noisy(field, seed)
         else:
-            base, cur, bid, cid = poses_e2e(field, seed, args.diameter_mm)
+            base, cur, bid, cid = poses_e2e(field, seed, args.diameter_mm, args.image_fit)
             print(
                 f"     e2e seed {seed}: poses before {len(base)} of {field.before.visible.sum()} "
                 f"visible ({field.before.observable.sum()} observable), after {len(cur)} of "

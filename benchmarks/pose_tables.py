@@ -23,7 +23,8 @@ Per cell (design, blur, noise, size):
 Targets: ring design, every Table 1 cell <= 1/5 of the paper's and every Table 2 cell <= 1/10;
 dot design (the paper's own geometry) every cell <= the paper's.
 
-Run: ``.venv/bin/python -m benchmarks.pose_tables [--quick] [--json out.json]``.
+Run: ``.venv/bin/python -m benchmarks.pose_tables [--quick] [--image-fit] [--slants 50-69]
+[--json out.json]``.
 """
 
 from __future__ import annotations
@@ -43,9 +44,12 @@ from numpy.typing import NDArray
 
 from armourcam.render import BACKGROUND, Target, render, rotation_from_slant_tilt
 from fiducial_detector.detect import SUBPIXEL_METHODS, detect
+from fiducial_detector.types import FiducialDetection
 from pose_estimator.camera import CameraModel
 from pose_estimator.crb import depth_bound
 from pose_estimator.estimate import detections_to_arrays, estimate_arrays
+from pose_estimator.image_fit import refine_from_image
+from pose_estimator.types import FiducialPose
 
 F_PX = 6507.0
 DIAMETER_MM = 7.1
@@ -121,8 +125,11 @@ def run_case(
     n_images: int,
     rng: np.random.Generator,
     subpixel: str = "ml",
+    image_fit: bool = False,
 ) -> tuple[CaseStats, float]:
-    """Detect and pose ``n_images`` noisy copies of ``base``; returns stats and detect seconds."""
+    """Detect and pose ``n_images`` noisy copies of ``base``; returns stats and detect seconds.
+    With ``image_fit`` each pose is refined by :func:`pose_estimator.image_fit.refine_from_image`
+    (in its tile's camera: the mosaic's pixels with the principal point at the tile's centre)."""
     cam = tile_camera(size_px)
     h, w = base.shape
     blurred = cv2.GaussianBlur(base, (0, 0), blur, borderType=cv2.BORDER_REFLECT)
@@ -140,7 +147,7 @@ def run_case(
     dets = detect(img, design=design, subpixel=subpixel)  # type: ignore[arg-type]
     seconds = time.perf_counter() - t0
     stats = CaseStats(n_images, z_true)
-    by_tile: dict[int, tuple[float, object]] = {}
+    by_tile: dict[int, tuple[float, FiducialDetection]] = {}
     for d in dets:
         r, c = int(d.center_px[1] // h), int(d.center_px[0] // w)
         tile = r * cols + c
@@ -156,25 +163,33 @@ def run_case(
         return stats, seconds
     tiles = sorted(by_tile)
     chosen = [by_tile[t][1] for t in tiles]
-    obs, cov, radius = detections_to_arrays(chosen, 0.5 * DIAMETER_MM)  # type: ignore[arg-type]
+    obs, cov, radius = detections_to_arrays(chosen, 0.5 * DIAMETER_MM)
     # Into each tile's own pixel frame (the tile camera's principal point is the tile centre).
     offs = np.array([[(t % cols) * w, (t // cols) * h] for t in tiles], dtype=np.float64)
     obs[..., :2] -= offs[:, None, :]
     res = estimate_arrays(obs, cov, radius, cam)
     for i in range(len(tiles)):
-        if res.valid[i]:
-            stats.z.append(float(res.position_mm[i, 2]))
-            stats.sigma.append(float(np.sqrt(res.covariance_mm2[i, 2, 2])))
+        if not res.valid[i]:
+            continue
+        pose = FiducialPose(
+            CODE, res.position_mm[i], res.normal[i], res.covariance_mm2[i], chosen[i]
+        )
+        if image_fit:
+            centre = (offs[i, 0] + (w - 1) / 2.0, offs[i, 1] + (h - 1) / 2.0)
+            mosaic_cam = CameraModel.ideal(img.shape[1], img.shape[0], F_PX, centre)
+            pose = refine_from_image(img, [pose], mosaic_cam, DIAMETER_MM)[0]
+        stats.z.append(float(pose.position_mm[2]))
+        stats.sigma.append(float(pose.sigma_mm[2]))
     return stats, seconds
 
 
 def run_task(
-    task: tuple[str, int, list[int], int, bool, str],
+    task: tuple[str, int, list[int], int, bool, str, bool],
 ) -> tuple[
     dict[tuple[str, int, float, float, int], CaseStats], dict[tuple[str, int, float], float], float
 ]:
     """All slants and degradations of one (design, size), and its CRB; seeded per task."""
-    design, size, slants, n_images, with_crb, subpixel = task
+    design, size, slants, n_images, with_crb, subpixel, image_fit = task
     rng = np.random.default_rng([20240601, size, DESIGNS.index(design)])
     cases = {}
     seconds = 0.0
@@ -182,7 +197,9 @@ def run_task(
     for slant in slants:
         base, z = base_image(design, size, slant)
         for blur, noise in DEGRADATIONS:
-            st, sec = run_case(design, size, base, z, blur, noise, n_images, rng, subpixel)
+            st, sec = run_case(
+                design, size, base, z, blur, noise, n_images, rng, subpixel, image_fit
+            )
             seconds += sec
             cases[(design, size, blur, noise, slant)] = st
     crb = {}
@@ -225,19 +242,34 @@ def main(argv: list[str] | None = None) -> int:
         default="ml",
         help="detector's sub-pixel method (ml: the most accurate, what these tables measure)",
     )
+    parser.add_argument(
+        "--image-fit",
+        action="store_true",
+        help="refine each pose by fitting the rendered fiducial to the image "
+        "(pose_estimator.image_fit)",
+    )
+    parser.add_argument(
+        "--slants",
+        help="slants to run, degrees, as FIRST-LAST (default 0-89; --quick: 0,20,40,60,69)",
+    )
     parser.add_argument("--json", type=Path, help="write all per-case numbers here")
     parser.add_argument(
         "--jobs", type=int, default=1, help="worker processes (one per design/size)"
     )
     args = parser.parse_args(argv)
     slants = [0, 20, 40, 60, 69] if args.quick else list(range(90))
+    if args.slants:
+        first, _, last = args.slants.partition("-")
+        slants = list(range(int(first), int(last or first) + 1))
     n_images = 10 if args.quick else 30
     designs = args.designs.split(",")
     sizes = [int(s) for s in args.sizes.split(",")]
     paper = read_paper()
     t_start = time.perf_counter()
     tasks = [
-        (d, s, slants, n_images, not args.no_crb, args.subpixel) for d in designs for s in sizes
+        (d, s, slants, n_images, not args.no_crb, args.subpixel, args.image_fit)
+        for d in designs
+        for s in sizes
     ]
     cases: dict[tuple[str, int, float, float, int], CaseStats] = {}
     crb: dict[tuple[str, int, float], float] = {}
@@ -254,7 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     total = time.perf_counter() - t_start
     print(
         f"# pose_tables: {'quick' if args.quick else 'full'} run, {len(slants)} slants x "
-        f"{n_images} images, subpixel={args.subpixel}, {total:.0f} s total "
+        f"{n_images} images, subpixel={args.subpixel}"
+        f"{', image fit' if args.image_fit else ''}, {total:.0f} s total "
         f"({det_seconds:.0f} s in detect)"
     )
     verdicts = report(cases, crb, paper, designs, sizes, slants)

@@ -348,6 +348,17 @@ def _render_patch(
     region[rows, cols] = cover * inside_mean + (1.0 - cover) * region[rows, cols]
 
 
+def reflectance_image(
+    camera: CameraModel, target: Target, *, supersample: int = 8, fill: float = 1.0
+) -> NDArray[np.float64]:
+    """Area-integrated printed reflectance of one fiducial over the camera's image (0 black,
+    1 white; ``fill`` where the fiducial's paper is not seen): what :func:`render` draws before
+    the levels, blur and noise. The model that :mod:`pose_estimator.image_fit` fits."""
+    canvas = np.full((camera.height, camera.width), fill, dtype=np.float64)
+    _render_patch(camera, fiducial_patch(target), canvas, supersample)
+    return canvas
+
+
 def render(
     camera: CameraModel,
     targets: Sequence[Target] = (),

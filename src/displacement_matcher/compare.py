@@ -55,8 +55,10 @@ def poses_from_images(
     *,
     design: str = "any",
     subpixel: str = "profile",
+    image_fit: bool = False,
 ) -> list[FiducialPose]:
-    """Detect, estimate and (for several images of one static state) fuse fiducial poses.
+    """Detect, estimate (refined by :func:`pose_estimator.image_fit.refine_from_image` when
+    ``image_fit``) and, for several images of one static state, fuse fiducial poses.
 
     Raises
     ------
@@ -67,13 +69,17 @@ def poses_from_images(
     from fiducial_detector.detect import detect
     from pose_estimator.estimate import estimate
     from pose_estimator.fusion import fuse
+    from pose_estimator.image_fit import refine_from_image
 
     frames = []
     for image in images:
         h, w = image.shape[:2]
         camera.check_image_size(w, h)
         found = detect(image, design=design, subpixel=subpixel)  # type: ignore[arg-type]
-        frames.append(estimate(found, camera, diameter_mm))
+        poses = estimate(found, camera, diameter_mm)
+        if image_fit:
+            poses = refine_from_image(image, poses, camera, diameter_mm)
+        frames.append(poses)
     if len(frames) == 1:
         return list(frames[0])
     return list(fuse(frames))

@@ -111,3 +111,19 @@ def test_calibration_for_another_image_size_is_a_per_file_error(
         assert res["detections"] == []
         assert str(path) in res["error"]
         assert "160x140" in res["error"] and "320x240" in res["error"]
+
+
+def test_image_fit_refines_pose(
+    scene: tuple[Path, Path, Target], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--image-fit gives every pose field, within its sigma of the truth; it needs --camera."""
+    path, calib, target = scene
+    status = main(["detect", str(path), "--camera", str(calib), "--image-fit", "--json"])
+    (det,) = json.loads(capsys.readouterr()[0])["images"][0]["detections"]
+    assert status == 0
+    pos, sigma = np.array(det["position_mm"]), np.array(det["sigma_mm"])
+    assert np.all(sigma > 0) and sigma[2] < 1.0
+    assert np.all(np.abs(pos - target.position_mm) < np.maximum(5 * sigma, [0.02, 0.02, 0.5]))
+    assert float(np.array(det["normal"]) @ target.rotation[:, 2]) > np.cos(np.radians(2.0))
+    assert main(["detect", str(path), "--image-fit"]) == 2
+    assert "--image-fit needs --camera" in capsys.readouterr()[1]

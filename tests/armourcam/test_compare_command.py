@@ -46,10 +46,15 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> tuple[Field, Path]:
     return f, d
 
 
+@pytest.mark.parametrize("image_fit", [False, True])
 def test_compare_json_and_files(
-    scene: tuple[Field, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    scene: tuple[Field, Path],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    image_fit: bool,
 ) -> None:
-    """The JSON has the issue's keys; displaced units are the truly displaced ones."""
+    """The JSON has the issue's keys; displaced units are the truly displaced ones (with the
+    ellipse poses and with the image fit's)."""
     f, d = scene
     out = tmp_path / "report"
     args = [
@@ -58,6 +63,8 @@ def test_compare_json_and_files(
         "--out", str(out), "--units", str(d / "units.yaml"),
         "--dn-mm", f"{f.geometry.dn_mm}", "--section-width-mm", f"{f.section_width_mm}", "--json",
     ]  # fmt: skip
+    if image_fit:
+        args.append("--image-fit")
     assert main(args) == 0
     doc = json.loads(capsys.readouterr().out)
     assert {"fiducials", "units", "summary"} <= set(doc)

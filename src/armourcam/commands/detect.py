@@ -21,7 +21,8 @@ import numpy as np
 from fiducial_detector import DetectorError, detect
 from fiducial_detector.detect import SUBPIXEL_METHODS
 from fiducial_detector.types import Ellipse, FiducialDetection
-from pose_estimator import CalibrationError, CameraModel, estimate
+from pose_estimator import CalibrationError, CameraModel, FiducialPose, estimate
+from pose_estimator.image_fit import refine_from_image
 
 from ..imageio import ImageReadError, read_image
 
@@ -66,6 +67,15 @@ def register(subparsers: Any) -> None:
         type=_diameter,
         default=7.1,
         help="printed diameter of the fiducials' outer circle, mm (default: 7.1)",
+    )
+    parser.add_argument(
+        "--image-fit",
+        action="store_true",
+        help=(
+            "with --camera: refine each pose by fitting the rendered fiducial to the image "
+            "(pose_estimator.image_fit: several times more precise in depth for small or "
+            "oblique fiducials, about 0.1-0.2 s per fiducial)"
+        ),
     )
     parser.set_defaults(func=run)
 
@@ -119,25 +129,20 @@ def detection_record(detection: FiducialDetection, **_context: Any) -> dict[str,
         "rotation": float(detection.rotation),
         "ellipses": [ellipse_record(e) for e in detection.ellipses],
     }
-    camera = _context.get("camera")
-    if camera is not None:
-        record.update(pose_record(detection, camera, float(_context.get("diameter_mm", 7.1))))
+    if "pose" in _context:
+        record.update(pose_record(_context["pose"]))
     return record
 
 
-def pose_record(
-    detection: FiducialDetection, camera: CameraModel, diameter_mm: float
-) -> dict[str, Any]:
+def pose_record(pose: FiducialPose | None) -> dict[str, Any]:
     """Pose fields of one detection (camera frame: x right, y down, z forward; millimetres).
 
     ``position_mm`` [x, y, z] of the fiducial's centre, unit ``normal`` [nx, ny, nz] out of the
     printed face, ``sigma_mm`` [sx, sy, sz] standard deviations; all None when the pose circle
     gives no real pose.
     """
-    poses = estimate([detection], camera, diameter_mm)
-    if not poses:
+    if pose is None:
         return {"position_mm": None, "normal": None, "sigma_mm": None}
-    pose = poses[0]
     return {
         "position_mm": [float(x) for x in pose.position_mm],
         "normal": [float(x) for x in pose.normal],
@@ -146,21 +151,37 @@ def pose_record(
 
 
 def detect_file(
-    path: str, design: str, subpixel: str = "profile", **context: Any
+    path: str,
+    design: str,
+    subpixel: str = "profile",
+    *,
+    camera: CameraModel | None = None,
+    diameter_mm: float = 7.1,
+    image_fit: bool = False,
 ) -> dict[str, Any]:
-    """Read and process one file; errors become the record's one-line ``error``."""
+    """Read and process one file; errors become the record's one-line ``error``. With a
+    camera each detection gets its pose (:func:`pose_estimator.estimate`, refined by
+    :func:`pose_estimator.image_fit.refine_from_image` when ``image_fit``)."""
     try:
         image = read_image(path)
-        camera = context.get("camera")
         if camera is not None:
             camera.check_image_size(image.shape[1], image.shape[0])
         found = detect(image, design=design, subpixel=subpixel)  # type: ignore[arg-type]
+        poses: dict[int, FiducialPose] = {}
+        if camera is not None:
+            estimated = estimate(found, camera, diameter_mm)
+            if image_fit:
+                estimated = refine_from_image(image, estimated, camera, diameter_mm)
+            poses = {id(p.detection): p for p in estimated}
     except (ImageReadError, DetectorError, CalibrationError) as err:
         message = str(err)
         if not message.startswith(path):
             message = f"{path}: {message}"
         return {"path": path, "error": message, "detections": []}
-    records = [detection_record(d, **context) for d in found]
+    if camera is None:
+        records = [detection_record(d) for d in found]
+    else:
+        records = [detection_record(d, pose=poses.get(id(d))) for d in found]
     return {"path": path, "error": None, "detections": records}
 
 
@@ -184,8 +205,20 @@ def _print_table(results: list[dict[str, Any]]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Process every image; exit status 1 if any could not be processed."""
-    context = {"camera": args.camera, "diameter_mm": args.diameter_mm}
-    results = [detect_file(path, args.design, args.subpixel, **context) for path in args.images]
+    if args.image_fit and args.camera is None:
+        print("armourcam detect: error: --image-fit needs --camera", file=sys.stderr)
+        return 2
+    results = [
+        detect_file(
+            path,
+            args.design,
+            args.subpixel,
+            camera=args.camera,
+            diameter_mm=args.diameter_mm,
+            image_fit=args.image_fit,
+        )
+        for path in args.images
+    ]
     failed = [r for r in results if r["error"] is not None]
     if args.json:
         json.dump({"images": results}, sys.stdout, indent=2)
