@@ -95,21 +95,16 @@ def run(args: argparse.Namespace) -> int:
     )
     before_imgs = [_read(p) for p in args.before]
     after_imgs = [_read(p) for p in args.after]
-    before = poses_from_images(
-        before_imgs,
-        camera,
-        args.diameter_mm,
-        design=args.design,
-        subpixel=args.subpixel,
-        image_fit=args.image_fit,
-    )
-    after = poses_from_images(
-        after_imgs,
-        camera,
-        args.diameter_mm,
-        design=args.design,
-        subpixel=args.subpixel,
-        image_fit=args.image_fit,
+    before, after = (
+        poses_from_images(
+            imgs,
+            camera,
+            args.diameter_mm,
+            design=args.design,
+            subpixel=args.subpixel,
+            image_fit=args.image_fit,
+        )
+        for imgs in (before_imgs, after_imgs)
     )
     kw: dict[str, float] = {}
     if args.gate_mm is not None:
