@@ -117,8 +117,8 @@ def ellipse_record(ellipse: Ellipse) -> dict[str, Any]:
 def detection_record(detection: FiducialDetection, **_context: Any) -> dict[str, Any]:
     """JSON record of one detection: the single place that decides the per-detection fields.
 
-    Keyword arguments are context for extensions (a camera, the printed diameter) and are
-    ignored here.
+    Keyword arguments are context: ``pose`` (a FiducialPose, or None where the detection gave
+    none) adds the pose fields (:func:`pose_record`); others are ignored.
     """
     record = {
         "code": int(detection.code),
