@@ -221,8 +221,7 @@ def match_units(
             ):
                 for i in ix:
                     p = np.asarray(baseline[i].position_mm, dtype=np.float64) + t
-                    off = across_line_of_sight(pred[i] - p, p)
-                    if np.all(np.isfinite(off)) and np.linalg.norm(off) <= rigid_gate_mm:
+                    if _seen_in_place(pred[i], p, rigid_gate_mm):
                         continue
                     pred[i] = p
                     gate[i] = translation_gate_mm
@@ -611,8 +610,7 @@ def _contested_lone_pairs(
             own = pair_of_unit.get(unit_of[k])
             if (
                 own is not None
-                and np.linalg.norm(across_line_of_sight(current[own[1]].position_mm - pos, pos))
-                <= span_mm
+                and _seen_in_place(current[own[1]].position_mm, pos, span_mm)
                 and _turned_onto(baseline, current, own, k, j)
             ):
                 out.add((i, j))
@@ -683,9 +681,13 @@ def _mostly_in_place(
     return stayed >= 2 and stayed > moved
 
 
-def _seen_in_place(point: NDArray[np.float64] | Any, where: NDArray[np.float64] | Any) -> bool:
-    """Whether ``point`` lies within :data:`STILL_SHOWN_MM` of ``where`` across the line of
-    sight through ``where`` (what one image measures precisely; depth aside)."""
+def _seen_in_place(
+    point: NDArray[np.float64] | Any,
+    where: NDArray[np.float64] | Any,
+    within_mm: float = STILL_SHOWN_MM,
+) -> bool:
+    """Whether ``point`` lies within ``within_mm`` of ``where`` across the line of sight
+    through ``where`` (what one image measures precisely; depth aside)."""
     w = np.asarray(where, dtype=np.float64)
     off = across_line_of_sight(np.asarray(point, dtype=np.float64) - w, w)
-    return bool(np.linalg.norm(off) <= STILL_SHOWN_MM)
+    return bool(np.linalg.norm(off) <= within_mm)

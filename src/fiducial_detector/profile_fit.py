@@ -70,6 +70,9 @@ _MIN_LINES = 12
 #: Largest relative difference of a partial edge's line step from the fit's typical one (a line
 #: crossing a sector boundary sees a fraction of the step).
 _ARC_HEIGHT_TOLERANCE = 0.2
+#: Largest relative difference of a partial edge's line step (mass over the window's share of
+#: a centred step) from its fit's upper decile: a first cut of the lines across white sectors.
+_ARC_STEP_TOLERANCE = 0.4
 #: Lines (about a pixel apart) left out next to a partial edge's ends.
 _ARC_END_LINES = 1
 #: Prior sd (pixels) of a partial edge's RMS displacement from its seed over the whole ellipse.
@@ -306,7 +309,7 @@ def _pass(
         with np.errstate(invalid="ignore", divide="ignore"):
             step = mass / np.maximum(_window_terms(lower, upper, sg, blur, cap)[0], 1e-6)
         top = _upper_decile(step, good)
-        good &= np.abs(step - top[:, None]) <= 0.4 * top[:, None]
+        good &= np.abs(step - top[:, None]) <= _ARC_STEP_TOLERANCE * top[:, None]
         # Lines across white sectors have no centroid (nor any use below).
         mean = np.where(good, mean, 0.0)
     if measure_blur:

@@ -219,14 +219,13 @@ def fit_pose(
     tile = _Tile.around(grey, full_scale, camera, det.pose_ellipse)
     if tile is None:
         return None
-    problem = _Problem(tile, det.code, det.design, diameter_mm, supersample)
     # Both branches of the circle pose, each with the spin the code read gives.
     ray = t0 / np.linalg.norm(t0)
     starts = [_frame(tile, t0, n, det.rotation) for n in (n0, 2.0 * (n0 @ ray) * ray - n0)]
-    mask = problem.pixels(t0, starts[0])
+    mask = _fit_pixels(tile, t0, starts[0], diameter_mm)
     if mask is None:
         return None
-    problem.use(mask)
+    problem = _Problem(tile, mask, det.code, det.design, diameter_mm, supersample)
     trials = [problem.cost(t0, R, START_BLUR_PX) for R in starts]
     chi = np.array([c.chi for c in trials])
     order = np.argsort(chi)
@@ -317,44 +316,45 @@ class _Cost:
     residual: F64  # (m,) over the fitted pixels
 
 
+def _fit_pixels(tile: _Tile, t: F64, R: F64, diameter_mm: float) -> NDArray[np.bool_] | None:
+    """Pixels to fit for a target at ``(t, R)`` (module notes, step 1); None if too few."""
+    cam = tile.camera
+    h, w = tile.values.shape
+    vv, uu = np.mgrid[0:h, 0:w]
+    xy = cam.undistort_normalized(np.column_stack([uu.ravel(), vv.ravel()]))
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    n = R[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = float(n @ t) / (rays @ n)
+    plane = (s[:, None] * rays - t) @ R[:, :2]
+    radius = np.hypot(plane[:, 0], plane[:, 1]).reshape(h, w) / (0.5 * diameter_mm)
+    radius = np.where(np.isfinite(radius) & (s.reshape(h, w) > 0), radius, np.inf)
+    paper = (radius <= MARGIN).astype(np.uint8)
+    k = 2 * int(np.ceil(PAPER_CLEARANCE_PX)) + 1
+    inside = cv2.erode(paper, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+    mask = inside & (radius <= FIT_RADIUS)
+    return mask if int(mask.sum()) >= MIN_PIXELS else None
+
+
 class _Problem:
     """The least-squares problem of one fiducial over one tile."""
 
     def __init__(
-        self, tile: _Tile, code: int, design: str, diameter_mm: float, supersample: int
+        self,
+        tile: _Tile,
+        mask: NDArray[np.bool_],
+        code: int,
+        design: str,
+        diameter_mm: float,
+        supersample: int,
     ) -> None:
         self.tile = tile
+        self.mask = mask  # the pixels fitted (:func:`_fit_pixels`)
+        self.obs: F64 = tile.values[mask]
         self.code = code
         self.design = design
         self.diameter_mm = diameter_mm
         self.supersample = supersample
-        self.mask: NDArray[np.bool_] = np.ones(tile.values.shape, dtype=bool)
-        self.basis: F64 = np.eye(3)
-        self.obs: F64 = tile.values.ravel()
-
-    def pixels(self, t: F64, R: F64) -> NDArray[np.bool_] | None:
-        """Pixels to fit for a target at ``(t, R)`` (module notes, step 1); None if too few."""
-        cam = self.tile.camera
-        h, w = self.tile.values.shape
-        vv, uu = np.mgrid[0:h, 0:w]
-        xy = cam.undistort_normalized(np.column_stack([uu.ravel(), vv.ravel()]))
-        rays = np.column_stack([xy, np.ones(len(xy))])
-        n = R[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = float(n @ t) / (rays @ n)
-        plane = (s[:, None] * rays - t) @ R[:, :2]
-        radius = np.hypot(plane[:, 0], plane[:, 1]).reshape(h, w) / (0.5 * self.diameter_mm)
-        radius = np.where(np.isfinite(radius) & (s.reshape(h, w) > 0), radius, np.inf)
-        paper = (radius <= MARGIN).astype(np.uint8)
-        k = 2 * int(np.ceil(PAPER_CLEARANCE_PX)) + 1
-        inside = cv2.erode(paper, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
-        mask = inside & (radius <= FIT_RADIUS)
-        return mask if int(mask.sum()) >= MIN_PIXELS else None
-
-    def use(self, mask: NDArray[np.bool_]) -> None:
-        """Fit the pixels of ``mask``."""
-        self.mask = mask
-        self.obs = self.tile.values[mask]
 
     def area(self, t: F64, R: F64) -> F64:
         """Unblurred reflectance of the target at ``(t, R)`` over the tile."""
@@ -386,11 +386,11 @@ class _Problem:
         # The position moves across the line of sight and along it (a step along the camera's z
         # would shift an off-axis image by pixels while barely scaling it): basis B, camera
         # frame. Parameter changes that move the rim by STEP_PX.
-        self.basis = _ray_basis(t)
+        basis = _ray_basis(t)
         scale = np.array(
             [z / f, z / f, z * z / (f * rad), z / (f * rad), z / (f * rad), z / (f * rad), 1.0]
         )
-        J = self._jacobian(t, R, blur, start, STEP_PX * scale)
+        J = self._jacobian(t, R, blur, start, STEP_PX * scale, basis)
         JTJ = J.T @ J
         diag = np.diag(JTJ).copy()
         cur, lam, refreshes = start, 1e-3, 0
@@ -412,7 +412,7 @@ class _Problem:
                 if move > MAX_STEP_PX:
                     delta *= MAX_STEP_PX / move
                     move = MAX_STEP_PX
-                tn, Rn, bn = _stepped(t, R, blur, delta, self.basis)
+                tn, Rn, bn = _stepped(t, R, blur, delta, basis)
                 trial = self.cost(tn, Rn, bn)
                 if trial.chi < cur.chi:
                     step = (tn, Rn, bn, trial, move)
@@ -429,7 +429,7 @@ class _Problem:
                 # landed, or the next steps follow a stale one (near fronto-parallel, where the
                 # tilt acts only at second order, they wandered off by degrees).
                 refreshes += 1
-                J = self._jacobian(t, R, blur, cur, STEP_PX * scale)
+                J = self._jacobian(t, R, blur, cur, STEP_PX * scale, basis)
                 JTJ = J.T @ J
                 diag = np.diag(JTJ).copy()
         m = len(self.obs)
@@ -440,23 +440,23 @@ class _Problem:
             inv = np.linalg.inv(JTJ)
         except np.linalg.LinAlgError:
             return None
-        cov = self.basis @ inv[:3, :3] @ self.basis.T * var
+        cov = basis @ inv[:3, :3] @ basis.T * var
         if not np.all(np.isfinite(cov)) or cov[2, 2] <= 0:
             return None
         return ImageFit(
             t, R, 0.5 * (cov + cov.T), blur, (cur.black, cur.white), float(np.sqrt(cur.chi / m)), m
         )
 
-    def _jacobian(self, t: F64, R: F64, blur: float, at: _Cost, steps: F64) -> F64:
-        """Model derivatives over the fitted pixels: position (3), rotation (3), blur, then the
-        black and white levels."""
+    def _jacobian(self, t: F64, R: F64, blur: float, at: _Cost, steps: F64, basis: F64) -> F64:
+        """Model derivatives over the fitted pixels: position (3, along ``basis``' columns),
+        rotation (3), blur, then the black and white levels."""
         contrast = at.white - at.black
         cols = []
         for k in range(6):
             d = np.zeros(3)
             d[k % 3] = steps[k]
             if k < 3:
-                plus, minus = self.area(t + self.basis @ d, R), self.area(t - self.basis @ d, R)
+                plus, minus = self.area(t + basis @ d, R), self.area(t - basis @ d, R)
             else:
                 plus = self.area(t, _rotation(d) @ R)
                 minus = self.area(t, _rotation(-d) @ R)
