@@ -24,7 +24,8 @@ printed, what is rendered and what the detector expects cannot drift apart.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from functools import cache
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -170,16 +171,129 @@ def reflectance(
     ndarray of float64
         Reflectance at each point, the broadcast shape of ``x`` and ``y``.
     """
-    xa = np.asarray(x, dtype=np.float64)
-    ya = np.asarray(y, dtype=np.float64)
-    r2 = xa * xa + ya * ya
-    black = r2 < design.dot_radius**2
-    in_track = (r2 >= design.track_inner**2) & (r2 < design.track_outer**2)
-    if np.any(in_track):
-        bits = code_bits(code).astype(bool)
-        theta = np.arctan2(ya, xa) % (2.0 * np.pi)
-        sector = np.minimum((theta * (BITS / (2.0 * np.pi))).astype(np.int64), BITS - 1)
-        black |= in_track & bits[sector]
+    xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+    r = np.hypot(xa, ya)
+    kind = _band_kinds(design)[np.searchsorted(edge_radii(design), r, side="right")]
+    value = np.asarray(kind, dtype=np.float64)
+    track = kind == _TRACK
+    if np.any(track):
+        value[track] = _track_value(code, xa[track], ya[track])
+    return value
+
+
+#: Band kinds of :func:`_band_kinds`: printed black, white paper, the coding track.
+_BLACK, _WHITE, _TRACK = 0, 1, 2
+
+
+@cache
+def _band_kinds(design: FiducialDesign) -> NDArray[np.int8]:
+    """What is printed in each band between consecutive :func:`edge_radii` (band ``k`` holds
+    radii from ``edge_radii[k - 1]`` up to ``edge_radii[k]``; the last band the paper outside)."""
+    radii = edge_radii(design)
+    mids = np.concatenate([[0.5 * radii[0]], 0.5 * (radii[:-1] + radii[1:]), [radii[-1] + 1.0]])
+    kinds = np.full(len(mids), _WHITE, dtype=np.int8)
+    kinds[mids < design.dot_radius] = _BLACK
     if design.annulus_inner is not None:
-        black |= (r2 >= design.annulus_inner**2) & (r2 < 1.0)
-    return np.where(black, 0.0, 1.0)
+        kinds[(mids >= design.annulus_inner) & (mids < 1.0)] = _BLACK
+    kinds[(mids >= design.track_inner) & (mids < design.track_outer)] = _TRACK
+    return kinds
+
+
+def _polar_angle(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Polar angle in ``[0, 2 pi)``, counter-clockwise from +x."""
+    return np.arctan2(y, x) % (2.0 * np.pi)
+
+
+def _sectors(theta: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Coding-track sector (0..BITS-1, counter-clockwise from +x) at polar angle ``theta``."""
+    return np.minimum((theta * (BITS / (2.0 * np.pi))).astype(np.int64), BITS - 1)
+
+
+def _track_value(code: int, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Reflectance of the coding track at points of it: a black sector where its bit is 1."""
+    return 1.0 - code_bits(code)[_sectors(_polar_angle(x, y))].astype(np.float64)
+
+
+@cache
+def edge_radii(design: FiducialDesign) -> NDArray[np.float64]:
+    """Radii of every printed circle boundary of ``design`` (where the printing may change
+    between black and white), ascending, in units of the outer radius."""
+    radii = {design.dot_radius, design.track_inner, design.track_outer, 1.0}
+    if design.annulus_inner is not None:
+        radii.add(design.annulus_inner)
+    return np.array(sorted(radii))
+
+
+def reflectance_near_edges(
+    design: FiducialDesign, code: int, x: ArrayLike, y: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Printed reflectance at target-frame points, with the distance to the nearest printed edge.
+
+    Only edges across which the printing changes count: a circle between a white sector and a
+    white ring is no edge, nor a boundary between two sectors of the same bit. The edges
+    considered are the circles where the printing changes at the point's polar angle and, in the
+    coding track, its sector's two boundaries (as lines through the centre). Near a sector's
+    corner the result is approximate: the corner itself may be nearer (outside the track) or
+    the boundary's line nearer than its segment (inside).
+
+    Parameters
+    ----------
+    design : FiducialDesign
+    code : int
+        Code number in the codebook.
+    x, y : array_like
+        Target-frame coordinates in units of the outer radius.
+
+    Returns
+    -------
+    value : ndarray of float64
+        Reflectance (0 black, 1 white), as :func:`reflectance`.
+    distance : ndarray of float64
+        Distance to the nearest edge, units of the outer radius (``inf`` where none is near).
+    normal_x, normal_y : ndarray of float64
+        Unit normal of that edge (either sign; zero where there is none).
+    """
+    xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+    r = np.hypot(xa, ya)
+    radii = edge_radii(design)
+    kinds = _band_kinds(design)
+    band = np.searchsorted(radii, r, side="right")
+    bits = code_bits(code)
+    theta = _polar_angle(xa, ya)
+    sector = _sectors(theta)
+    track_value = 1.0 - bits[sector].astype(np.float64)
+
+    def printed(k: NDArray[np.intp]) -> NDArray[np.float64]:
+        # Reflectance of band k at each point's polar angle.
+        kind = kinds[k]
+        return np.where(kind == _TRACK, track_value, np.asarray(kind, dtype=np.float64))
+
+    value = printed(band)
+    safe = np.where(r > 0, r, 1.0)
+    ux, uy = np.where(r > 0, xa / safe, 1.0), np.where(r > 0, ya / safe, 0.0)
+    distance, nx, ny = np.full(r.shape, np.inf), np.zeros(r.shape), np.zeros(r.shape)
+
+    def consider(d: NDArray[np.float64], across: NDArray[np.float64], ex: Any, ey: Any) -> None:
+        # An edge counts where the printing on its far side differs and it is the nearest so far.
+        take = (across != value) & (d < distance)
+        distance[take] = d[take]
+        nx[take] = np.broadcast_to(ex, r.shape)[take]
+        ny[take] = np.broadcast_to(ey, r.shape)[take]
+
+    for k, radius in enumerate(radii):
+        # Circle k, between bands k and k + 1: an edge at this angle where they differ (every band
+        # between the point and its nearest such circle prints what the point does).
+        inside, outside = printed(np.full(r.shape, k)), printed(np.full(r.shape, k + 1))
+        consider(np.abs(r - radius), np.where(inside != outside, 1.0 - value, value), ux, uy)
+    in_track = kinds[band] == _TRACK
+    if np.any(in_track):
+        step = 2.0 * np.pi / BITS
+        for side in (0, 1):
+            # The sector's start (side 0) or end (side 1): a line through the centre.
+            angle = (sector + side) * step
+            d = np.where(in_track, r * np.abs(np.sin(theta - angle)), np.inf)
+            across = np.where(
+                bits[(sector + 2 * side - 1) % BITS] != bits[sector], 1.0 - value, value
+            )
+            consider(d, across, -np.sin(angle), np.cos(angle))
+    return value, distance, nx, ny

@@ -79,6 +79,11 @@ MIN_BLUR_PX = 0.2
 #: Both branches are fitted unless the worse start's squared residuals exceed this multiple of
 #: the better's (far apart: the code's sectors already tell them apart).
 BRANCH_CLEAR = 1.5
+#: Rays per pixel side where a pixel straddles a printed edge. The renderer gives each ray's
+#: sub-square its exact coverage by the edge, so the model is continuous in the pose and within
+#: 0.001 px of the exact image already at 4 (a 45 px ring at 60 deg fits 0.03 mm deeper than at
+#: 32, a tenth of its sd; plain sampling at 8 rays was 0.24 mm off and moved in steps).
+SUPERSAMPLE = 4
 #: Fewest pixels for a fit.
 MIN_PIXELS = 50
 
@@ -120,7 +125,7 @@ def refine_from_image(
     camera: CameraModel,
     diameter_mm: float,
     *,
-    supersample: int = 8,
+    supersample: int = SUPERSAMPLE,
     iterations: int = ITERATIONS,
 ) -> list[FiducialPose]:
     """Poses refined by fitting each fiducial's rendered image to the image (module notes).
@@ -193,7 +198,7 @@ def fit_pose(
     pose: FiducialPose,
     camera: CameraModel,
     diameter_mm: float,
-    supersample: int = 8,
+    supersample: int = SUPERSAMPLE,
     iterations: int = ITERATIONS,
 ) -> ImageFit | None:
     """The image fit of one fiducial (module notes), None where it cannot be made.

@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from fiducial_detector.codebook import BITS, code_bits, code_count
-from fiducial_detector.design import DESIGNS, DOT, RING, FiducialDesign, get_design, reflectance
+from fiducial_detector.design import (
+    DESIGNS,
+    DOT,
+    RING,
+    FiducialDesign,
+    get_design,
+    reflectance,
+    reflectance_near_edges,
+)
 
 EPS = 1e-6
 
@@ -101,3 +109,33 @@ def test_unknown_design_is_rejected() -> None:
     with pytest.raises(ValueError, match=r"'star'.*dot.*ring"):
         get_design("star")
     assert set(DESIGNS) == {"dot", "ring"}
+
+
+@pytest.mark.parametrize("name", ["dot", "ring"])
+@pytest.mark.parametrize("code", [0, 23, 63])
+def test_nearest_edge_is_an_edge_and_none_is_nearer(name: str, code: int) -> None:
+    """Brute force over random points: the printing changes a hair beyond the reported distance
+    along the reported normal (on one side), and it is the same everywhere within 0.9 of that
+    distance, except where a sector's corner is nearer (there the nearest edge is approximate)."""
+    design = get_design(name)
+    rng = np.random.default_rng(code)
+    x, y = rng.uniform(-1.25, 1.25, (2, 20000))
+    value, distance, nx, ny = reflectance_near_edges(design, code, x, y)
+    assert np.array_equal(value, reflectance(design, code, x, y))
+    near = np.isfinite(distance)
+    assert near.mean() > 0.4
+    x, y, value, distance, nx, ny = (a[near] for a in (x, y, value, distance, nx, ny))
+    step = distance + 1e-9
+    plus = reflectance(design, code, x + step * nx, y + step * ny)
+    minus = reflectance(design, code, x - step * nx, y - step * ny)
+    assert np.mean((plus != value) | (minus != value)) > 0.99
+    angles = np.arange(BITS) * 2.0 * np.pi / BITS
+    corners = np.concatenate(
+        [rho * np.exp(1j * angles) for rho in (design.track_inner, design.track_outer)]
+    )
+    clear = np.abs((x + 1j * y)[:, None] - corners[None, :]).min(axis=1) > distance
+    assert clear.sum() > 5000
+    for angle in np.linspace(0.0, 2.0 * np.pi, 24, endpoint=False):
+        r = 0.9 * distance
+        around = reflectance(design, code, x + r * np.cos(angle), y + r * np.sin(angle))
+        assert np.array_equal(around[clear], value[clear])

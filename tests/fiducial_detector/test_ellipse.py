@@ -150,8 +150,9 @@ def test_fit_matches_truth(
         assert abs(e.semi_major - truth[2]) < axis_tol
         assert abs(e.semi_minor - truth[3]) < axis_tol
         if truth[2] - truth[3] > 1.0:
+            # A nearly round ellipse's angle is loosely measured: its own sd says how loosely.
             d_ang = (e.angle - truth[4] + np.pi / 2) % np.pi - np.pi / 2
-            assert abs(d_ang) < 0.01
+            assert abs(d_ang) < max(0.01, 4.0 * np.sqrt(e.covariance[4, 4]))
         assert e.semi_major >= e.semi_minor > 0 and 0 <= e.angle < np.pi
         checked += 1
     assert checked >= 1
