@@ -506,8 +506,10 @@ def _centroids(
     """
     f32 = np.float32
     k, m = lines.valid.shape
-    frac = np.linspace(0.0, 1.0, SAMPLES, dtype=f32)
-    width = (lines.upper - lines.lower).astype(f32, copy=False)[:, :, None] * frac
+    # Sample-major maps (k, SAMPLES, m): every broadcast runs along the lines, not along a
+    # line's few samples (the short inner loops cost more than the arithmetic).
+    frac = np.linspace(0.0, 1.0, SAMPLES, dtype=f32)[None, :, None]
+    width = (lines.upper - lines.lower).astype(f32, copy=False)
     # remap takes maps of fewer than 32767 rows and columns: the samples are written straight
     # into rows of a folded map.
     size = k * m * SAMPLES
@@ -518,9 +520,10 @@ def _centroids(
         (fx, lines.origin_u, lines.normal_u),
         (fy, lines.origin_v, lines.normal_v),
     ):
-        view = buf[:size].reshape(k, m, SAMPLES)
-        np.multiply(normal.astype(f32, copy=False)[:, :, None], width, out=view)
-        view += (origin + normal * lines.lower).astype(f32)[:, :, None]
+        view = buf[:size].reshape(k, SAMPLES, m)
+        np.multiply(width[:, None, :], frac, out=view)
+        view *= normal.astype(f32, copy=False)[:, None, :]
+        view += (origin + normal * lines.lower).astype(f32)[:, None, :]
     prof = cv2.remap(
         src,
         fx.reshape(rows, _FOLD),
@@ -528,17 +531,17 @@ def _centroids(
         cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REPLICATE,
     )
-    prof = prof.ravel()[:size].reshape(k, m, SAMPLES)
+    prof = prof.ravel()[:size].reshape(k, SAMPLES, m)
     # Sums over the forward differences at the midpoints (j + 1/2) steps from the window's
     # start, of 1, (j + 1/2) and (j + 1/2)^2, as weights on the samples (one product).
-    sums = (prof @ _MOMENT_WEIGHTS).astype(lines.lower.dtype, copy=False)
+    sums = (_MOMENT_WEIGHTS.T @ prof).astype(lines.lower.dtype, copy=False)
     pol = polarity.astype(lines.lower.dtype)[:, None]
-    mass = sums[:, :, 0] * pol
+    mass = sums[:, 0] * pol
     step = lines.step
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = pol / mass
-        c1 = sums[:, :, 1] * inv
-        c2 = sums[:, :, 2] * inv
+        c1 = sums[:, 1] * inv
+        c2 = sums[:, 2] * inv
         mean = lines.lower + step * c1
         m2 = step * step * (c2 - c1 * c1)
     return mean, mass, m2
@@ -555,7 +558,7 @@ def _moment_weights() -> NDArray[np.float32]:
     return w.astype(np.float32)
 
 
-_MOMENT_WEIGHTS = _moment_weights()
+_MOMENT_WEIGHTS = np.ascontiguousarray(_moment_weights())
 
 
 def _inside_runs(good: NDArray[np.bool_]) -> NDArray[np.bool_]:
