@@ -463,9 +463,8 @@ def _finish(
     centre = np.array([f[0].center_px for f in fitted])
     axes = np.array([(f[0].semi_major, f[0].semi_minor) for f in fitted])
     angle = np.array([f[0].angle for f in fitted])
-    drift = np.array([_drift(f, r0) for f in fitted])
+    drift = _drift(fitted, r0)
     second = read_codes(grey, full_scale, design, centre, axes, angle, drift, reader)
-    out: list[FiducialDetection] = []
     chosen: list[tuple[int, TrackReading, int]] = []
     for j, i in enumerate(kidx.tolist()):
         if second.accepted[j]:
@@ -497,9 +496,7 @@ def _finish(
     checked = {j for j, _, _ in thin}
     final = [(j, reading, k) for j, reading, k in chosen if j not in checked or j in confirmed]
     groups = fit_arcs(grey, [fitted[j] for j, _, _ in final], design)
-    for group, (_, reading, k) in zip(groups, final, strict=True):
-        out.append(_detection(design, group, reading, k))
-    return out
+    return _detections(design, groups, [(reading, k) for _, reading, k in final])
 
 
 def _model_confirms(
@@ -984,24 +981,25 @@ def _ellipses(
     (aligned with ``rows``) is False."""
     idx = np.arange(len(fits)) if rows is None else rows
     good = fits.ok[idx] if keep is None else fits.ok[idx] & keep
-    out: list[Ellipse | None] = []
-    for j, g in zip(idx.tolist(), good.tolist(), strict=True):
-        if not g:
-            out.append(None)
-            continue
-        u, v, a, b, ang = fits.params[j].tolist()
-        out.append(
-            Ellipse(
-                center_px=(u, v),
-                semi_major=a,
-                semi_minor=b,
-                angle=ang,
-                covariance=fits.covariance[j],
-                radius=radius,
-                rms_residual=float(fits.chi[j]),
-            )
+    # Python scalars taken out of the arrays in one call each (per-element indexing of numpy
+    # arrays costs more than building the Ellipse).
+    params = fits.params[idx].tolist()
+    chi = fits.chi[idx].tolist()
+    cov = fits.covariance[idx]
+    return [
+        Ellipse(
+            center_px=(p[0], p[1]),
+            semi_major=p[2],
+            semi_minor=p[3],
+            angle=p[4],
+            covariance=cov[n],
+            radius=radius,
+            rms_residual=c,
         )
-    return out
+        if g
+        else None
+        for n, (g, p, c) in enumerate(zip(good.tolist(), params, chi, strict=True))
+    ]
 
 
 def _parameters(e: Ellipse) -> tuple[float, float, float, float, float]:
@@ -1034,13 +1032,15 @@ def _plausible(fit: Ellipse, seed: Ellipse | NDArray[Any]) -> bool:
     return bool(_plausible_rows(np.array([_parameters(fit)]), np.array([row], dtype=float))[0])
 
 
-def _drift(fits: tuple[Ellipse, ...], r0: float) -> NDArray[np.float64]:
-    """Centre drift per unit r^2 from the pose ellipse and the smallest other fitted circle."""
-    if len(fits) < 2:
-        return np.zeros(2)
-    other = fits[-1]
-    d = np.subtract(fits[0].center_px, other.center_px)
-    return np.asarray(d / (r0**2 - other.radius**2), dtype=np.float64)
+def _drift(fitted: list[tuple[Ellipse, ...]], r0: float) -> NDArray[np.float64]:
+    """``(n, 2)``: each fiducial's centre drift per unit r^2 from its pose ellipse and its
+    smallest other fitted circle (zero for a lone pose ellipse)."""
+    pose = np.array([f[0].center_px for f in fitted]).reshape(-1, 2)
+    other = np.array([f[-1].center_px for f in fitted]).reshape(-1, 2)
+    r = np.array([f[-1].radius for f in fitted])
+    lone = np.array([len(f) < 2 for f in fitted])
+    # A lone pose ellipse is its own "other": zero drift, and a denominator kept clear of 0.
+    return (pose - other) / np.where(lone, 1.0, r0**2 - r**2)[:, None]
 
 
 def _noise_std(grey: NDArray[np.generic]) -> float:
@@ -1060,19 +1060,36 @@ def _noise_std(grey: NDArray[np.generic]) -> float:
     return float(estimate_noise(np.vstack(tiles)))
 
 
-def _detection(
-    design: FiducialDesign, ellipses: tuple[Ellipse, ...], reading: TrackReading, j: int
-) -> FiducialDetection:
-    pose = ellipses[0]
-    return FiducialDetection(
-        code=int(reading.code[j]),
-        hamming=int(reading.hamming[j]),
-        center_px=pose.center_px,
-        ellipses=ellipses,
-        contrast=float(reading.contrast[j]),
-        design=design.name,
-        rotation=float(reading.rotation[j]),
-    )
+def _detections(
+    design: FiducialDesign,
+    groups: list[tuple[Ellipse, ...]],
+    readings: list[tuple[TrackReading, int]],
+) -> list[FiducialDetection]:
+    """Detections from each fiducial's ellipses and its reading (row ``k`` of a
+    :class:`TrackReading`)."""
+    # Each reading's columns as Python lists, once (indexing numpy arrays per element is slow).
+    columns: dict[int, tuple[list[Any], ...]] = {}
+    for reading, _ in readings:
+        if id(reading) not in columns:
+            columns[id(reading)] = tuple(
+                getattr(reading, name).tolist()
+                for name in ("code", "hamming", "contrast", "rotation")
+            )
+    out = []
+    for group, (reading, k) in zip(groups, readings, strict=True):
+        code, hamming, contrast, rotation = columns[id(reading)]
+        out.append(
+            FiducialDetection(
+                code=int(code[k]),
+                hamming=int(hamming[k]),
+                center_px=group[0].center_px,
+                ellipses=group,
+                contrast=float(contrast[k]),
+                design=design.name,
+                rotation=float(rotation[k]),
+            )
+        )
+    return out
 
 
 def _deduplicate(found: list[FiducialDetection]) -> list[FiducialDetection]:

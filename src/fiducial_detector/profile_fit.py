@@ -102,20 +102,32 @@ _INV_SQRT_2PI = float(1.0 / np.sqrt(2.0 * np.pi))
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Lines:
-    """Sample lines of one pass for a block of ``k`` fits, padded to ``m`` lines each."""
+    """Sample lines of one pass for a block of ``k`` fits, padded to ``m`` lines each.
+
+    Full edges' lines are in single precision (half the memory traffic of every per-line
+    operation), but for the origins: image coordinates in single precision are off by up to
+    1e-4 px, so the sample maps are rounded to it once, from double (fewer lines flip across a
+    window or height test than with every term rounded); the least-squares sums are formed in
+    double precision (:func:`_solve`). Against double precision throughout, full edges' fits on
+    the 400-target frames moved by 3e-6 px (median) and under 5e-4 px (bar one dot in 1200,
+    2.5e-3 px, 0.2 of its sd). Partial edges (arcs) keep double precision, their fits unchanged
+    from a given seed: many of their lines sit near the step tests' limits (lines across a
+    sector's end see part of the step), so that a seed moved by 2e-5 px already moves an arc by
+    up to 0.01 px.
+    """
 
     valid: NDArray[np.bool_]  # (k, m) a line, not padding
     origin_u: NDArray[np.float64]  # (k, m) point on the current ellipse
     origin_v: NDArray[np.float64]
-    normal_u: NDArray[np.float64]  # (k, m) outward unit normal
-    normal_v: NDArray[np.float64]
-    jac: NDArray[np.float64]  # (k, m, 5) d(signed distance)/d(u, v, A, B, C)
-    kappa: NDArray[np.float64]  # (k, m) curvature of the ellipse at the origin
-    lower: NDArray[np.float64]  # (k, m) window along the normal, pixels from the origin
-    upper: NDArray[np.float64]
+    normal_u: NDArray[np.floating[Any]]  # (k, m) outward unit normal
+    normal_v: NDArray[np.floating[Any]]
+    jac: NDArray[np.floating[Any]]  # (k, 5, m) d(signed distance)/d(u, v, A, B, C)
+    kappa: NDArray[np.floating[Any]]  # (k, m) curvature of the ellipse at the origin
+    lower: NDArray[np.floating[Any]]  # (k, m) window along the normal, pixels from the origin
+    upper: NDArray[np.floating[Any]]
 
     @property
-    def step(self) -> NDArray[np.float64]:
+    def step(self) -> NDArray[np.floating[Any]]:
         """Spacing of the samples along each line."""
         return (self.upper - self.lower) / (SAMPLES - 1)
 
@@ -296,12 +308,15 @@ def _pass(
     the seeds of a partial edge (see :func:`refine_by_profiles_f32`)."""
     partial = tie is not None
     k = cur.shape[0]
-    lines = _lines(cur, n_lines, rho_range, cap)
+    dtype: type[np.floating[Any]] = np.float64 if partial else np.float32
+    lines = _lines(cur, n_lines, rho_range, cap, dtype)
     mean, mass, m2 = _centroids(src, lines, pol)
     lower, upper = lines.lower, lines.upper
     box = lines.step**2 / 12.0  # the forward differences' box
     good = lines.valid & np.isfinite(mean) & (mass > 0)
-    sg = np.sqrt(blur[:, None] ** 2 + box)
+    # Per-line arithmetic in the lines' precision.
+    blur2 = (blur * blur).astype(dtype)[:, None]
+    sg = np.sqrt(blur2 + box)
     if partial:
         # Only lines across a printed part of the edge: steps (the mass over the fraction of
         # a step centred in the window that the window holds) near the largest ones'. (Lines
@@ -320,7 +335,8 @@ def _pass(
         _, _, ratio = _truncated_normal((lower - mean) / sg, (upper - mean) / sg)
         est = _mean(np.clip(m2 / ratio - box, 0.0, 9.0), wide)
         blur = np.where(np.isfinite(est), np.sqrt(np.maximum(est, 0.04)), blur)
-        sg = np.sqrt(blur[:, None] ** 2 + box)
+        blur2 = (blur * blur).astype(dtype)[:, None]
+        sg = np.sqrt(blur2 + box)
     # The edge as the centre of the Gaussian whose window-truncated centroid was measured: to
     # first order in its offset c from the line's origin the centroid is sg T + c V, with T, V
     # the truncated standard normal's mean and variance (the origin lies within a few
@@ -329,18 +345,19 @@ def _pass(
     pos = (mean - sg * shift) / gain
     good &= (pos - lower >= _MIN_WINDOW_SPREADS * sg) & (upper - pos >= _MIN_WINDOW_SPREADS * sg)
     # Where the ellipse bends within the blur the curvature correction below fails.
-    good &= lines.kappa * blur[:, None] <= _MAX_CURVATURE_SPREAD
+    good &= lines.kappa * blur.astype(dtype)[:, None] <= _MAX_CURVATURE_SPREAD
     # The step must be this fiducial's edge: its height near the fit's typical one.
     height = mass / np.maximum(z, 1e-6)
     typical = _mean(height, good)
+    typ = typical.astype(dtype)[:, None]
     if not partial:
-        good &= (height > 0.5 * typical[:, None]) & (height < 1.5 * typical[:, None])
+        good &= (height > 0.5 * typ) & (height < 1.5 * typ)
     else:
-        good &= np.abs(height - typical[:, None]) <= _ARC_HEIGHT_TOLERANCE * typical[:, None]
+        good &= np.abs(height - typ) <= _ARC_HEIGHT_TOLERANCE * typ
         good = _inside_runs(good)
     # A blurred curved edge's centroid lies kappa s^2 / 2 inside it; then the linearised
     # distance d_new(origin) = jac . delta = -t.
-    t = np.where(good, pos + 0.5 * lines.kappa * blur[:, None] ** 2, 0.0)
+    t = np.where(good, pos + 0.5 * lines.kappa * blur2, 0.0)
     prior = None if tie is None else _tie(lines, cur, tie)
     delta, cov_f, rms, used = _solve(lines.jac, t, good, prior)
     ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
@@ -356,22 +373,25 @@ def _pass(
 
 
 def _window_terms(
-    lower: NDArray[np.float64],
-    upper: NDArray[np.float64],
-    sg: NDArray[np.float64],
+    lower: NDArray[np.floating[Any]],
+    upper: NDArray[np.floating[Any]],
+    sg: NDArray[np.floating[Any]],
     blur: NDArray[np.float64],
     cap: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+) -> tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]]]:
     """:func:`_truncated_normal` of every line's window in spreads ``sg``. Most windows are their
     fit's symmetric cap: one evaluation per fit; the lines cut shorter are evaluated apiece."""
     box = (2.0 * cap / (SAMPLES - 1)) ** 2 / 12.0
     half = cap / np.sqrt(blur * blur + box)
     z0, _, v0 = _truncated_normal(-half, half)
     shape = lower.shape
-    z = np.repeat(z0[:, None], shape[1], axis=1)
-    gain = np.repeat(v0[:, None], shape[1], axis=1)
-    shift = np.zeros(shape)
-    cut = (lower > -cap[:, None] + 1e-9) | (upper < cap[:, None] - 1e-9)
+    dtype = lower.dtype
+    z = np.repeat(z0.astype(dtype)[:, None], shape[1], axis=1)
+    gain = np.repeat(v0.astype(dtype)[:, None], shape[1], axis=1)
+    shift = np.zeros(shape, dtype=dtype)
+    # Windows not cut are the cap, in the lines' precision.
+    cap_t = cap.astype(dtype)[:, None]
+    cut = (lower > -cap_t) | (upper < cap_t)
     if np.any(cut):
         z[cut], shift[cut], gain[cut] = _truncated_normal(
             lower[cut] / sg[cut], upper[cut] / sg[cut]
@@ -410,22 +430,25 @@ def _lines(
     count: NDArray[np.intp],
     rho_range: tuple[float, float],
     cap: NDArray[np.float64],
+    dtype: type[np.floating[Any]],
 ) -> _Lines:
-    """``count`` lines on every ellipse of a block, with their geometry and windows."""
+    """``count`` lines on every ellipse of a block, with their geometry and windows, in
+    precision ``dtype`` (see :class:`_Lines`)."""
     m = int(count.max())
     kk = np.arange(m)[None, :]
     valid = kk < count[:, None]
-    a, b, ang = (ellipses[:, i : i + 1] for i in (2, 3, 4))
+    a64, b64 = ellipses[:, 2:3], ellipses[:, 3:4]
+    a, b, ang = (ellipses[:, i : i + 1].astype(dtype) for i in (2, 3, 4))
     # Spread evenly in arc length to first order: parametric angle phi = psi + e sin(2 psi) / 2,
     # e = (a - b) / (a + b), for uniform psi.
     # In single precision (SIMD trigonometry, several times faster): any angle serves, as long as
     # the point and its normal below come from the same (cp, sp); the spacing is a heuristic and
     # float32's 1e-7 is ~1e-5 px on a 100 px ellipse.
     psi = (kk + 0.5).astype(np.float32) * (2.0 * np.pi / count[:, None]).astype(np.float32)
-    ecc = (0.5 * (a - b) / (a + b)).astype(np.float32)
+    ecc = (0.5 * (a64 - b64) / (a64 + b64)).astype(np.float32)
     phi = psi + ecc * np.sin(np.float32(2.0) * psi)
-    cp, sp = np.cos(phi).astype(np.float64), np.sin(phi).astype(np.float64)
-    # Exactly on the unit circle in double precision, so that the point lies on the ellipse.
+    cp, sp = np.cos(phi).astype(dtype), np.sin(phi).astype(dtype)
+    # Exactly on the unit circle in the lines' precision, so that the point lies on the ellipse.
     unit = np.sqrt(cp * cp + sp * sp)
     cp /= unit
     sp /= unit
@@ -442,21 +465,23 @@ def _lines(
     # Windows stop half-way to the neighbouring printed edges (concentric, so at rho times the
     # support along the normal).
     lo, hi = rho_range
-    lower = -np.minimum((1.0 - lo) * support, cap[:, None])
-    upper = np.minimum((hi - 1.0) * support, cap[:, None])
+    cap_t = cap.astype(dtype)[:, None]
+    lower = -np.minimum((1.0 - lo) * support, cap_t)
+    upper = np.minimum((hi - 1.0) * support, cap_t)
     # d(signed distance)/d(u, v, A, B, C) at a point of the ellipse (rho = 1): the derivative of
     # q = (p - c)^T Q (p - c) over |grad q|, with grad q = 2 Q (p - c).
-    q = quadratic_form(ellipses[:, 2:5])
+    q = quadratic_form(ellipses[:, 2:5]).astype(dtype)
     gx = q[:, 0:1] * du + q[:, 1:2] * dv
     gy = q[:, 1:2] * du + q[:, 2:3] * dv
     inv = 1.0 / np.sqrt(gx * gx + gy * gy)
-    jac = np.empty((*du.shape, 5))
-    np.multiply(gx, -inv, out=jac[:, :, 0])
-    np.multiply(gy, -inv, out=jac[:, :, 1])
+    # Parameter-major (k, 5, m): each derivative is written and summed contiguously.
+    jac = np.empty((du.shape[0], 5, m), dtype=dtype)
+    np.multiply(gx, -inv, out=jac[:, 0])
+    np.multiply(gy, -inv, out=jac[:, 1])
     half = 0.5 * inv
-    np.multiply(du * du, half, out=jac[:, :, 2])
-    np.multiply(du * dv, inv, out=jac[:, :, 3])
-    np.multiply(dv * dv, half, out=jac[:, :, 4])
+    np.multiply(du * du, half, out=jac[:, 2])
+    np.multiply(du * dv, inv, out=jac[:, 3])
+    np.multiply(dv * dv, half, out=jac[:, 4])
     return _Lines(
         valid,
         ellipses[:, 0:1] + du,
@@ -472,7 +497,7 @@ def _lines(
 
 def _centroids(
     src: NDArray[np.float32], lines: _Lines, polarity: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+) -> tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]]]:
     """Per line, over its window: the derivative's centroid (outward, pixels from the origin),
     its mass (signed so that the expected polarity is positive) and its second central moment.
 
@@ -481,8 +506,10 @@ def _centroids(
     """
     f32 = np.float32
     k, m = lines.valid.shape
-    frac = np.linspace(0.0, 1.0, SAMPLES, dtype=f32)
-    width = (lines.upper - lines.lower).astype(f32)[:, :, None] * frac
+    # Sample-major maps (k, SAMPLES, m): every broadcast runs along the lines, not along a
+    # line's few samples (the short inner loops cost more than the arithmetic).
+    frac = np.linspace(0.0, 1.0, SAMPLES, dtype=f32)[None, :, None]
+    width = (lines.upper - lines.lower).astype(f32, copy=False)
     # remap takes maps of fewer than 32767 rows and columns: the samples are written straight
     # into rows of a folded map.
     size = k * m * SAMPLES
@@ -493,9 +520,10 @@ def _centroids(
         (fx, lines.origin_u, lines.normal_u),
         (fy, lines.origin_v, lines.normal_v),
     ):
-        view = buf[:size].reshape(k, m, SAMPLES)
-        np.multiply(normal.astype(f32)[:, :, None], width, out=view)
-        view += (origin + normal * lines.lower).astype(f32)[:, :, None]
+        view = buf[:size].reshape(k, SAMPLES, m)
+        np.multiply(width[:, None, :], frac, out=view)
+        view *= normal.astype(f32, copy=False)[:, None, :]
+        view += (origin + normal * lines.lower).astype(f32)[:, None, :]
     prof = cv2.remap(
         src,
         fx.reshape(rows, _FOLD),
@@ -503,16 +531,17 @@ def _centroids(
         cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REPLICATE,
     )
-    prof = prof.ravel()[:size].reshape(k, m, SAMPLES)
+    prof = prof.ravel()[:size].reshape(k, SAMPLES, m)
     # Sums over the forward differences at the midpoints (j + 1/2) steps from the window's
     # start, of 1, (j + 1/2) and (j + 1/2)^2, as weights on the samples (one product).
-    sums = (prof @ _MOMENT_WEIGHTS).astype(np.float64)
-    mass = sums[:, :, 0] * polarity[:, None]
+    sums = (_MOMENT_WEIGHTS.T @ prof).astype(lines.lower.dtype, copy=False)
+    pol = polarity.astype(lines.lower.dtype)[:, None]
+    mass = sums[:, 0] * pol
     step = lines.step
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = polarity[:, None] / mass
-        c1 = sums[:, :, 1] * inv
-        c2 = sums[:, :, 2] * inv
+        inv = pol / mass
+        c1 = sums[:, 1] * inv
+        c2 = sums[:, 2] * inv
         mean = lines.lower + step * c1
         m2 = step * step * (c2 - c1 * c1)
     return mean, mass, m2
@@ -529,7 +558,7 @@ def _moment_weights() -> NDArray[np.float32]:
     return w.astype(np.float32)
 
 
-_MOMENT_WEIGHTS = _moment_weights()
+_MOMENT_WEIGHTS = np.ascontiguousarray(_moment_weights())
 
 
 def _inside_runs(good: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -567,9 +596,10 @@ def _tie(
     """The prior of a partial edge's step, in the units of ``jac . delta = -t``: information
     ``Q`` (k, 5, 5) of the mean squared edge displacement over all of each ellipse's lines
     (:data:`_ARC_TIE_PX`) and the current ellipses' offsets ``theta - theta_seed`` (k, 5)."""
-    jw = lines.jac * lines.valid[:, :, None]
+    jac = lines.jac.astype(np.float64, copy=False)
+    jw = jac * lines.valid[:, None, :]
     n = np.maximum(lines.valid.sum(axis=1), 1)
-    info = np.swapaxes(jw, 1, 2) @ lines.jac / (n * _ARC_TIE_PX**2)[:, None, None]
+    info = jw @ np.swapaxes(jac, 1, 2) / (n * _ARC_TIE_PX**2)[:, None, None]
     offset = np.empty((cur.shape[0], 5))
     offset[:, :2] = cur[:, :2] - seeds[:, :2]
     offset[:, 2:] = quadratic_form(cur[:, 2:5]) - quadratic_form(seeds[:, 2:5])
@@ -577,8 +607,8 @@ def _tie(
 
 
 def _solve(
-    jac: NDArray[np.float64],
-    t: NDArray[np.float64],
+    jac: NDArray[np.floating[Any]],
+    t: NDArray[np.floating[Any]],
     good: NDArray[np.bool_],
     prior: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
@@ -588,10 +618,13 @@ def _solve(
     ``Q`` and current offsets ``o`` from the seeds (:func:`_tie`); the step then also pays
     ``(o + delta)^T Q (o + delta)``, and the covariance is still the lines' alone."""
     k = jac.shape[0]
-    jw = jac * good[:, :, None]
-    jwt = np.swapaxes(jw, 1, 2)
-    normal = jwt @ jac
-    rhs = -(jwt @ t[:, :, None])[:, :, 0]
+    # Sums in double precision from the lines' single-precision terms.
+    jac = jac.astype(np.float64, copy=False)
+    t = t.astype(np.float64, copy=False)
+    jw = jac * good[:, None, :]
+    jact = np.swapaxes(jac, 1, 2)
+    normal = jw @ jact
+    rhs = -(jw @ t[:, :, None])[:, :, 0]
     use = good
     # A partial edge's lines are weighed against its prior by their sd: assumed in the first
     # round, the residuals' in the second.
@@ -613,18 +646,26 @@ def _solve(
                 lhs,
                 right,
             )
-        resid = np.where(use, t + (jac @ np.nan_to_num(delta)[:, :, None])[:, :, 0], 0.0)
-        sd = np.sqrt((resid * resid).sum(axis=1) / np.maximum(used - 5, 1))
+        step = np.nan_to_num(delta)
         if rnd == 0:
+            resid = np.where(use, t + (step[:, None, :] @ jac)[:, 0, :], 0.0)
+            sd = np.sqrt((resid * resid).sum(axis=1) / np.maximum(used - 5, 1))
             # A few bad lines inflate the RMS only a little among a fit's hundred or more.
             keep = np.abs(resid) <= _OUTLIER_SDS * sd[:, None]
             # The few lines dropped come out of the sums (cheaper than summing all again).
             fit, line = np.nonzero(use & ~keep)
             if fit.size:
-                jd = jac[fit, line]
+                jd = jac[fit, :, line]
                 np.subtract.at(normal, fit, jd[:, :, None] * jd[:, None, :])
                 np.add.at(rhs, fit, jd * t[fit, line][:, None])
             use = use & keep
+        else:
+            # The residuals' sum of squares from the sums already formed: t.t - 2 delta.r +
+            # delta^T N delta over the lines used (r = -J t), no second pass over the lines.
+            tt = np.where(use, t * t, 0.0).sum(axis=1)
+            ss = tt - 2.0 * np.einsum("ki,ki->k", step, rhs)
+            ss += np.einsum("ki,kij,kj->k", step, normal, step)
+            sd = np.sqrt(np.maximum(ss, 0.0) / np.maximum(used - 5, 1))
     cov = np.full((k, 5, 5), np.nan)
     if np.any(solvable):
         inv = per_matrix(np.linalg.inv, (int(solvable.sum()), 5, 5), normal[solvable])
