@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cache
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -249,7 +249,7 @@ def reflectance_near_edges(
     value : ndarray of float64
         Reflectance (0 black, 1 white), as :func:`reflectance`.
     distance : ndarray of float64
-        Distance to the nearest edge, units of the outer radius (``inf`` where none is near).
+        Distance to the nearest edge, units of the outer radius (``inf`` where there is none).
     normal_x, normal_y : ndarray of float64
         Unit normal of that edge (either sign; zero where there is none).
     """
@@ -263,37 +263,33 @@ def reflectance_near_edges(
     sector = _sectors(theta)
     track_value = 1.0 - bits[sector].astype(np.float64)
 
-    def printed(k: NDArray[np.intp]) -> NDArray[np.float64]:
-        # Reflectance of band k at each point's polar angle.
-        kind = kinds[k]
-        return np.where(kind == _TRACK, track_value, np.asarray(kind, dtype=np.float64))
-
-    value = printed(band)
+    kind = kinds[band]
+    value = np.where(kind == _TRACK, track_value, kind.astype(np.float64))
+    # Circles: circle k lies between bands k and k + 1 and is an edge at this angle where they
+    # print differently (every band between the point and its nearest such circle prints what
+    # the point does); the nearest along the radius.
+    circle = np.full(r.shape, np.inf)
+    for k, radius in enumerate(radii.tolist()):
+        inside, outside = int(kinds[k]), int(kinds[k + 1])
+        if _TRACK in (inside, outside):
+            other = outside if inside == _TRACK else inside
+            circle = np.where(track_value != other, np.minimum(circle, np.abs(r - radius)), circle)
+        elif inside != outside:
+            circle = np.minimum(circle, np.abs(r - radius))
+    distance = circle
     safe = np.where(r > 0, r, 1.0)
-    ux, uy = np.where(r > 0, xa / safe, 1.0), np.where(r > 0, ya / safe, 0.0)
-    distance, nx, ny = np.full(r.shape, np.inf), np.zeros(r.shape), np.zeros(r.shape)
-
-    def consider(d: NDArray[np.float64], across: NDArray[np.float64], ex: Any, ey: Any) -> None:
-        # An edge counts where the printing on its far side differs and it is the nearest so far.
-        take = (across != value) & (d < distance)
-        distance[take] = d[take]
-        nx[take] = np.broadcast_to(ex, r.shape)[take]
-        ny[take] = np.broadcast_to(ey, r.shape)[take]
-
-    for k, radius in enumerate(radii):
-        # Circle k, between bands k and k + 1: an edge at this angle where they differ (every band
-        # between the point and its nearest such circle prints what the point does).
-        inside, outside = printed(np.full(r.shape, k)), printed(np.full(r.shape, k + 1))
-        consider(np.abs(r - radius), np.where(inside != outside, 1.0 - value, value), ux, uy)
-    in_track = kinds[band] == _TRACK
+    nx, ny = np.where(r > 0, xa / safe, 1.0), np.where(r > 0, ya / safe, 0.0)
+    in_track = kind == _TRACK
     if np.any(in_track):
         step = 2.0 * np.pi / BITS
         for side in (0, 1):
-            # The sector's start (side 0) or end (side 1): a line through the centre.
+            # The sector's start (side 0) or end (side 1), a line through the centre: an edge
+            # where the neighbouring sector's bit differs.
             angle = (sector + side) * step
-            d = np.where(in_track, r * np.abs(np.sin(theta - angle)), np.inf)
-            across = np.where(
-                bits[(sector + 2 * side - 1) % BITS] != bits[sector], 1.0 - value, value
-            )
-            consider(d, across, -np.sin(angle), np.cos(angle))
+            edge = in_track & (bits[(sector + 2 * side - 1) % BITS] != bits[sector])
+            d = np.where(edge, r * np.abs(np.sin(theta - angle)), np.inf)
+            nearer = d < distance
+            distance = np.where(nearer, d, distance)
+            nx = np.where(nearer, -np.sin(angle), nx)
+            ny = np.where(nearer, np.cos(angle), ny)
     return value, distance, nx, ny
