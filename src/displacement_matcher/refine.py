@@ -167,6 +167,14 @@ def match_units(
                 continue
             if u.n_matched == 1:
                 lone.update((i, pair_of[i]) for i in u.baseline_indices if i in pair_of)
+        covered = (
+            _still_neighbours_faces(baseline, current, units, template, span, pair_of, lone)
+            if template is not None
+            else set()
+        )
+        for u in units:
+            if u.overturned:
+                continue
             if u.method == "none" or u.n_matched == 0:
                 # Nothing matched. A unit of several fiducials may have moved far and lost its
                 # partners to a wrong first guess: it searches the full gate again. A lone
@@ -191,9 +199,10 @@ def match_units(
                     gate[i] = rigid_gate_mm
                 continue
             for i in u.baseline_indices:
-                if i in lone and in_place.get(i, lone[i]) != lone[i]:
+                if i in covered or (i in lone and in_place.get(i, lone[i]) != lone[i]):
                     # A lone pair that moved while a face of its code is still seen where the
-                    # fiducial was (a partly covered fiducial whose depth is off, its pair a
+                    # fiducial was, or while a still neighbour's template puts its own face of
+                    # that code there (a partly covered fiducial whose depth is off, its pair a
                     # neighbour's face): it is looked for where it was, as a lone fiducial.
                     pred[i] = baseline[i].position_mm
                     gate[i] = translation_gate_mm
@@ -535,6 +544,56 @@ def _neighbour_faces_taken(
                 continue
             if _fits_template([*shown, taken], template):
                 out.add((i, j))
+                break
+    return out
+
+
+def _still_neighbours_faces(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    units: Sequence[UnitMotion],
+    template: UnitSpec,
+    span_mm: float,
+    match_of: dict[int, int],
+    lone: dict[int, int],
+) -> set[int]:
+    """Lone pairs' baseline fiducials that are a still neighbour's own face, depth aside.
+
+    A fiducial partly covered by a nearer one's paper can be posed tens of millimetres off in
+    depth: no unit takes it in, and alone it matches any same-code face that appears nearby
+    (a mover's newly seen one). Where a neighbour within ``span_mm`` is seen in place (every
+    one of its matches still, across the line of sight) and the template fitted to its own
+    baseline faces (:func:`template_pose`) puts its face of that code, missing from them,
+    where the fiducial is seen (within :data:`STILL_SHOWN_MM` across the line of sight), the
+    fiducial is that face. Returns the baseline indices of such pairs."""
+    out: set[int] = set()
+    for i, j in lone.items():
+        p = baseline[i]
+        pos = np.asarray(p.position_mm, dtype=np.float64)
+        if _seen_in_place(current[j].position_mm, pos) or int(p.code) not in template.positions_mm:
+            continue
+        for v in units:
+            if i in v.baseline_indices or v.overturned or not v.baseline_indices:
+                continue
+            faces = [baseline[k] for k in v.baseline_indices]
+            if int(p.code) in {int(f.code) for f in faces}:
+                continue
+            matched = [k for k in v.baseline_indices if k in match_of]
+            if not matched or any(
+                not _seen_in_place(current[match_of[k]].position_mm, baseline[k].position_mm)
+                for k in matched
+            ):
+                continue
+            near = np.linalg.norm(np.array([f.position_mm for f in faces]) - pos, axis=1)
+            if not np.min(near) <= span_mm:
+                continue
+            fit = template_pose(faces, template)
+            if fit is None:
+                continue
+            R, t = fit
+            at = R @ np.asarray(template.positions_mm[int(p.code)], dtype=np.float64) + t
+            if _seen_in_place(at, pos):
+                out.add(i)
                 break
     return out
 

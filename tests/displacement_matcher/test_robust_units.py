@@ -489,3 +489,33 @@ def test_still_unit_with_two_faces_in_place_is_not_moved_by_a_depth_outlier_and_
     unit = next(u for u in units if set(u.baseline_indices) == set(doc["unit_baseline_indices"]))
     assert unit.status == "still"
     assert summary.displaced_units == 0
+
+
+def test_covered_face_posed_near_is_not_a_lone_mover() -> None:
+    """Real poses from the end-to-end field (seed 0, everything within 80 mm of a still unit):
+    the unit's code-17 face was partly covered before the run and posed 32 mm too near, so no
+    unit took it in; after the run it is not seen, and alone it matched a moved neighbour's
+    newly seen code-17 face 42 mm away. The still unit's template, fitted to its two faces seen
+    in place, puts its code-17 face where the covered one is seen (across the line of sight):
+    it is that face, looked for where it was; nothing in the patch is displaced."""
+    doc = json.loads((DATA / "covered_face_seed0.json").read_text())
+
+    def poses(rows: list[dict[str, Any]]) -> list[FiducialPose]:
+        return [
+            FiducialPose(
+                r["code"],
+                np.array(r["position_mm"]),
+                np.array(r["normal"]),
+                np.array(r["covariance_mm2"]),
+            )
+            for r in rows
+        ]
+
+    an = match_units(poses(doc["baseline"]), poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    assert summary.displaced_units == 0
+    covered = doc["covered_baseline_index"]
+    pair = next(d for d in an.result.displacements if d.baseline_index == covered)
+    assert pair.current_index is None
+    seen = doc["unit_baseline_indices"][0]  # a face seen in place before and after
+    assert next(u for u in units if seen in u.baseline_indices).status == "still"
