@@ -304,7 +304,7 @@ def _plane_points(
     undistort: _Undistort, patch: Patch, u: _F64, v: _F64
 ) -> tuple[_F64, _F64, NDArray[np.bool_]]:
     """Patch-frame points ``(x, y)`` mm seen at pixel positions (u, v), flattened, and where the
-    ray meets the plane in front of the camera."""
+    ray meets the patch (its plane in front of the camera, within its extent)."""
     x, y = undistort(u.ravel(), v.ravel())
     R, t = patch.rotation, patch.position_mm
     # Ray d = (x, y, 1) meets the plane n.(P - t) = 0 at P = s d, s = n.t / n.d; the plane point
@@ -316,7 +316,8 @@ def _plane_points(
     c = R.T @ t
     q0 = s * (R[0, 0] * x + R[1, 0] * y + R[2, 0]) - c[0]
     q1 = s * (R[0, 1] * x + R[1, 1] * y + R[2, 1]) - c[1]
-    return q0, q1, hit
+    with np.errstate(invalid="ignore"):
+        return q0, q1, hit & (q0 * q0 + q1 * q1 <= patch.extent_mm**2)
 
 
 def _sample(
@@ -324,9 +325,7 @@ def _sample(
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Reflectance of ``patch`` seen at pixel positions (u, v), and where the patch is hit."""
     shape = u.shape
-    q0, q1, hit = _plane_points(undistort, patch, u, v)
-    with np.errstate(invalid="ignore"):
-        inside = hit & (q0 * q0 + q1 * q1 <= patch.extent_mm**2)
+    q0, q1, inside = _plane_points(undistort, patch, u, v)
     value = np.zeros(q0.size)
     idx = np.flatnonzero(inside)
     if idx.size:
@@ -346,13 +345,11 @@ def _sample_covering(
     v: _F64,
     supersample: int,
 ) -> tuple[_F64, NDArray[np.bool_]]:
-    """As :func:`_sample` for the ``(k, n)`` samples of ``k`` pixels (centres ``u[:, 0]``...),
-    each sample's value its sub-square's coverage by the printing on either side of the nearest
-    edge (:attr:`Patch.edges`)."""
+    """As :func:`_sample` for ``(k, n)`` samples, row ``i`` the sub-square centres of one pixel
+    (symmetric about its centre), each sample's value its sub-square's coverage by the printing
+    on either side of the nearest edge (:attr:`Patch.edges`)."""
     shape = u.shape
-    q0, q1, hit = _plane_points(undistort, patch, u, v)
-    with np.errstate(invalid="ignore"):
-        inside = hit & (q0 * q0 + q1 * q1 <= patch.extent_mm**2)
+    q0, q1, inside = _plane_points(undistort, patch, u, v)
     value = np.zeros(q0.size)
     idx = np.flatnonzero(inside)
     if idx.size:

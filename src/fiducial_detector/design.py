@@ -234,15 +234,7 @@ def reflectance_near_edges(
     considered are the circles where the printing changes at the point's polar angle and, in the
     coding track, its sector's two boundaries (as lines through the centre). Near a sector's
     corner the result is approximate: the corner itself may be nearer (outside the track) or
-    the boundary's line nearer than its segment (inside).
-
-    Parameters
-    ----------
-    design : FiducialDesign
-    code : int
-        Code number in the codebook.
-    x, y : array_like
-        Target-frame coordinates in units of the outer radius.
+    the boundary's line nearer than its segment (inside). Parameters as :func:`reflectance`.
 
     Returns
     -------

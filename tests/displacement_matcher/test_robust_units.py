@@ -462,6 +462,19 @@ def test_lone_fiducial_seen_in_place_with_its_depth_off_keeps_its_face() -> None
     assert pair.current_index == 1
 
 
+def _poses(rows: list[dict[str, Any]]) -> list[FiducialPose]:
+    """Poses from a recorded patch's rows (``tests/displacement_matcher/data``)."""
+    return [
+        FiducialPose(
+            r["code"],
+            np.array(r["position_mm"]),
+            np.array(r["normal"]),
+            np.array(r["covariance_mm2"]),
+        )
+        for r in rows
+    ]
+
+
 def test_still_unit_with_two_faces_in_place_is_not_moved_by_a_depth_outlier_and_a_stranger() -> (
     None
 ):
@@ -473,18 +486,7 @@ def test_still_unit_with_two_faces_in_place_is_not_moved_by_a_depth_outlier_and_
     unit is looked for where it was, and nothing in the patch is displaced."""
     doc = json.loads((DATA / "covered_unit_seed4.json").read_text())
 
-    def poses(rows: list[dict[str, Any]]) -> list[FiducialPose]:
-        return [
-            FiducialPose(
-                r["code"],
-                np.array(r["position_mm"]),
-                np.array(r["normal"]),
-                np.array(r["covariance_mm2"]),
-            )
-            for r in rows
-        ]
-
-    an = match_units(poses(doc["baseline"]), poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
+    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
     units, summary = assess(an.units, thresholds(GEO.dn_mm))
     unit = next(u for u in units if set(u.baseline_indices) == set(doc["unit_baseline_indices"]))
     assert unit.status == "still"
@@ -500,18 +502,7 @@ def test_covered_face_posed_near_is_not_a_lone_mover() -> None:
     it is that face, looked for where it was; nothing in the patch is displaced."""
     doc = json.loads((DATA / "covered_face_seed0.json").read_text())
 
-    def poses(rows: list[dict[str, Any]]) -> list[FiducialPose]:
-        return [
-            FiducialPose(
-                r["code"],
-                np.array(r["position_mm"]),
-                np.array(r["normal"]),
-                np.array(r["covariance_mm2"]),
-            )
-            for r in rows
-        ]
-
-    an = match_units(poses(doc["baseline"]), poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
+    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
     units, summary = assess(an.units, thresholds(GEO.dn_mm))
     assert summary.displaced_units == 0
     covered = doc["covered_baseline_index"]
