@@ -93,10 +93,10 @@ class Patch:
     edges : callable, optional
         ``f(x_mm, y_mm) -> (reflectance, distance_mm, normal_x, normal_y)``: the reflectance with
         the distance to (and unit normal of) the nearest edge across which it changes. Where
-        given, each area sample of a pixel straddling an edge covers its own share of the pixel
-        with the edge drawn through it (the sample's coverage is linear in the edge's distance),
-        so the image changes continuously with the patch's pose instead of in steps of one
-        sample: what a fit to rendered images needs.
+        given, each ray of a pixel straddling an edge stands for its sub-square of the pixel,
+        split exactly by that edge (taken as straight across the sub-square), so the image
+        changes continuously with the patch's pose instead of in steps of one ray: what a fit
+        to rendered images needs.
     """
 
     rotation: NDArray[np.float64]
