@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from armourcam.render import Target, TargetTruth, render, rotation_from_slant_tilt
+from armourcam.render import Target, TargetTruth, defocus, render, rotation_from_slant_tilt
 from fiducial_detector import detect
 from fiducial_detector.codebook import code_count
 from pose_estimator.camera import CameraModel
@@ -72,7 +72,7 @@ def degrade(
     clean: NDArray[np.float64], blur: float, noise: float, rng: np.random.Generator
 ) -> NDArray[np.uint8]:
     """The renderer's degradation: Gaussian blur, additive noise, rounding to 8 bits."""
-    img = cv2.GaussianBlur(clean, (0, 0), blur, borderType=cv2.BORDER_REFLECT)
+    img = defocus(clean, blur)
     img = img + rng.normal(0.0, noise, img.shape)
     return np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
 

@@ -24,10 +24,9 @@ import csv
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from armourcam.render import Target, render
+from armourcam.render import Target, defocus, render
 from fiducial_detector.detect import SUBPIXEL_METHODS, detect
 from pose_estimator import CameraModel, estimate
 from pose_estimator.image_fit import refine_from_image
@@ -112,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 / 65535.0
             )
-            blurred = cv2.GaussianBlur(base, (0, 0), 0.5, borderType=cv2.BORDER_REFLECT)
+            blurred = defocus(base, 0.5)
             zd, cd, xy, found = [], [], [], 0
             for _ in range(args.images):
                 noisy = blurred + rng.normal(0.0, 0.01, blurred.shape)

@@ -38,11 +38,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from armourcam.render import BACKGROUND, Target, render, rotation_from_slant_tilt
+from armourcam.render import BACKGROUND, Target, defocus, render, rotation_from_slant_tilt
 from fiducial_detector.detect import SUBPIXEL_METHODS, detect
 from fiducial_detector.types import FiducialDetection
 from pose_estimator.camera import CameraModel
@@ -132,7 +131,7 @@ def run_case(
     (in its tile's camera: the mosaic's pixels with the principal point at the tile's centre)."""
     cam = tile_camera(size_px)
     h, w = base.shape
-    blurred = cv2.GaussianBlur(base, (0, 0), blur, borderType=cv2.BORDER_REFLECT)
+    blurred = defocus(base, blur)
     rows = int(np.ceil(n_images / TILES[1]))
     cols = min(n_images, TILES[1])
     mosaic = np.tile(blurred, (rows, cols))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -452,6 +453,14 @@ def reflectance_image(
     return canvas
 
 
+def defocus(image: NDArray[np.floating[Any]], sigma: float) -> NDArray[np.float64]:
+    """The camera's blur as every synthetic image gets it: a Gaussian of sd ``sigma`` pixels
+    (OpenCV's sampled kernel, edges reflected)."""
+    return np.asarray(
+        cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REFLECT), dtype=np.float64
+    )
+
+
 def render(
     camera: CameraModel,
     targets: Sequence[Target] = (),
@@ -516,10 +525,7 @@ def render(
     # Reflectance -> intensity: black..white (the background level where nothing is printed).
     img: NDArray[np.float64] = black + (white - black) * canvas
     if blur_sigma > 0:
-        img = np.asarray(
-            cv2.GaussianBlur(img, (0, 0), blur_sigma, borderType=cv2.BORDER_REFLECT),
-            dtype=np.float64,
-        )
+        img = defocus(img, blur_sigma)
     if noise > 0:
         gen = rng if rng is not None else np.random.default_rng()
         img = img + gen.normal(0.0, noise, img.shape)

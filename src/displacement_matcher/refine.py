@@ -514,14 +514,7 @@ def _neighbour_faces_taken(
     def moved(i: int) -> bool:
         return not _seen_in_place(cur[match_of[i]].position_mm, base[i].position_mm)
 
-    still = [
-        v
-        for v in units
-        if not v.overturned
-        and v.current_indices
-        and any(i in match_of for i in v.baseline_indices)
-        and not any(moved(i) for i in v.baseline_indices if i in match_of)
-    ]
+    still = _units_in_place(units, base, cur, match_of)
     out: set[tuple[int, int]] = set()
     for u in units:
         if u.n_matched != 1:
@@ -567,34 +560,51 @@ def _still_neighbours_faces(
     where the fiducial is seen (within :data:`STILL_SHOWN_MM` across the line of sight), the
     fiducial is that face. Returns the baseline indices of such pairs."""
     out: set[int] = set()
+    if not lone:
+        return out
+    # Each still unit's baseline faces and where its template puts the unit (fitted once).
+    still = []
+    for v in _units_in_place(units, baseline, current, match_of):
+        faces = [baseline[k] for k in v.baseline_indices]
+        fit = template_pose(faces, template)
+        if fit is not None:
+            still.append((v, faces, fit))
     for i, j in lone.items():
         p = baseline[i]
         pos = np.asarray(p.position_mm, dtype=np.float64)
         if _seen_in_place(current[j].position_mm, pos) or int(p.code) not in template.positions_mm:
             continue
-        for v in units:
-            if i in v.baseline_indices or v.overturned or not v.baseline_indices:
-                continue
-            faces = [baseline[k] for k in v.baseline_indices]
-            if int(p.code) in {int(f.code) for f in faces}:
-                continue
-            matched = [k for k in v.baseline_indices if k in match_of]
-            if not matched or any(
-                not _seen_in_place(current[match_of[k]].position_mm, baseline[k].position_mm)
-                for k in matched
-            ):
+        local = np.asarray(template.positions_mm[int(p.code)], dtype=np.float64)
+        for v, faces, (R, t) in still:
+            if i in v.baseline_indices or int(p.code) in {int(f.code) for f in faces}:
                 continue
             near = np.linalg.norm(np.array([f.position_mm for f in faces]) - pos, axis=1)
-            if not np.min(near) <= span_mm:
-                continue
-            fit = template_pose(faces, template)
-            if fit is None:
-                continue
-            R, t = fit
-            at = R @ np.asarray(template.positions_mm[int(p.code)], dtype=np.float64) + t
-            if _seen_in_place(at, pos):
+            if np.min(near) <= span_mm and _seen_in_place(R @ local + t, pos):
                 out.add(i)
                 break
+    return out
+
+
+def _units_in_place(
+    units: Sequence[UnitMotion],
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    match_of: dict[int, int],
+) -> list[UnitMotion]:
+    """Units seen in place: not overturned, with one match or more, every one of them still
+    across the line of sight (``match_of``: baseline -> current index)."""
+    out = []
+    for v in units:
+        matched = [i for i in v.baseline_indices if i in match_of]
+        if (
+            not v.overturned
+            and matched
+            and all(
+                _seen_in_place(current[match_of[i]].position_mm, baseline[i].position_mm)
+                for i in matched
+            )
+        ):
+            out.append(v)
     return out
 
 

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from armourcam.render import Target, render
+from armourcam.render import Target, defocus, render
 
 from .camera import CameraModel
 
@@ -51,12 +51,7 @@ def _image(
     """Noise-free image (fraction of full range) of one target, blurred."""
     scene = render(camera, [target], dtype=np.uint16, supersample=supersample)
     img = scene.image.astype(np.float64) / 65535.0
-    if blur_sigma > 0:
-        img = np.asarray(
-            cv2.GaussianBlur(img, (0, 0), blur_sigma, borderType=cv2.BORDER_REFLECT),
-            dtype=np.float64,
-        )
-    return img
+    return defocus(img, blur_sigma) if blur_sigma > 0 else img
 
 
 def depth_bound(

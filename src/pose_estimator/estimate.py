@@ -430,7 +430,7 @@ def estimate_arrays(
     image = circle_image_t(centers[:, :, None], normals[:, :, None], safe_r)
     chi2_cf = _chi2(obs_n[:, 1:], W[:, :, 1:], image) if kc > 1 else np.zeros((2, n))  # (2, N)
     dchi = chi2_cf[1] - chi2_cf[0]
-    w0 = 1.0 / (1.0 + np.exp(np.clip(-0.5 * dchi, -700.0, 700.0)))
+    w0 = likelihood_weight(dchi)
     best = np.where(w0 >= 0.5, 0, 1)
     idx = np.arange(n)
     # Joint refinement of the better candidate over all circles.
@@ -464,11 +464,9 @@ def estimate_arrays(
     cov_best = 0.5 * (cov_c + np.swapaxes(cov_c, 0, 1))  # (3, 3, N)
     c = centers.copy()
     c[:, best, idx] = c_best
+    # The refined candidate's covariance stands for both.
+    mean, mix = candidate_mixture(w0, c[:, 0], c[:, 1], cov_best)  # (3, N), (3, 3, N)
     w1 = 1.0 - w0
-    mean = w0 * c[:, 0] + w1 * c[:, 1]  # (3, N)
-    d0, d1 = c[:, 0] - mean, c[:, 1] - mean
-    # Mixture covariance: the refined candidate's covariance stands for both.
-    mix = cov_best + (w0 * d0[:, None] * d0[None, :] + w1 * d1[:, None] * d1[None, :])
     p = K @ mean
     center_px = (p[:2] / p[2]).T
     ok = valid & np.isfinite(mean).all(axis=0) & np.isfinite(mix).all(axis=(0, 1))
@@ -482,6 +480,37 @@ def estimate_arrays(
         np.ascontiguousarray(center_px),
         chi2,
     )
+
+
+def likelihood_weight(dchi: F64 | float) -> F64:
+    """Likelihood weight of the first of two candidates whose chi-squares differ by ``dchi``
+    (second minus first)."""
+    return np.asarray(1.0 / (1.0 + np.exp(np.clip(-0.5 * np.asarray(dchi), -700.0, 700.0))))
+
+
+def candidate_mixture(w0: F64 | float, first: F64, second: F64, covariance: F64) -> tuple[F64, F64]:
+    """The two circle-pose candidates as one estimate: their likelihood-weighted mean position
+    and the mixture covariance (``covariance``, standing for both, plus their spread about the
+    mean).
+
+    Parameters
+    ----------
+    w0 : float or (N,) ndarray
+        The first candidate's likelihood weight (:func:`likelihood_weight`).
+    first, second : (3,) or (3, N) ndarray
+        The candidates' positions.
+    covariance : (3, 3) or (3, 3, N) ndarray
+
+    Returns
+    -------
+    mean : (3,) or (3, N) ndarray
+    covariance : (3, 3) or (3, 3, N) ndarray
+    """
+    w1 = 1.0 - w0
+    mean = w0 * first + w1 * second
+    d0, d1 = first - mean, second - mean
+    mix = covariance + w0 * d0[:, None] * d0[None, :] + w1 * d1[:, None] * d1[None, :]
+    return mean, mix
 
 
 #: Stand-in ellipse ``(u, v, s11, s12, s22)`` (matrix axes first) for circles not observed.

@@ -42,13 +42,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from armourcam.render import MARGIN, Target, reflectance_image
+from armourcam.render import MARGIN, Target, defocus, reflectance_image
 from fiducial_detector.design import DESIGNS
 from fiducial_detector.detect import to_grey
 from fiducial_detector.types import Ellipse
 
 from .camera import CameraModel
 from .errors import PoseError
+from .estimate import candidate_mixture, likelihood_weight
 from .types import FiducialPose
 
 F64 = NDArray[np.float64]
@@ -255,11 +256,8 @@ def _mixture(best: ImageFit, other: ImageFit) -> ImageFit:
     better), and their depths by a millimetre or two: the covariance says so."""
     var = best.rms**2
     gap = (other.rms**2 - var) * best.pixels / var
-    w0 = 1.0 / (1.0 + float(np.exp(np.clip(-0.5 * gap, -700.0, 700.0))))
-    w1 = 1.0 - w0
-    mean = w0 * best.position_mm + w1 * other.position_mm
-    d0, d1 = best.position_mm - mean, other.position_mm - mean
-    cov = best.covariance_mm2 + w0 * np.outer(d0, d0) + w1 * np.outer(d1, d1)
+    w0 = likelihood_weight(gap)
+    mean, cov = candidate_mixture(w0, best.position_mm, other.position_mm, best.covariance_mm2)
     return ImageFit(mean, best.rotation, cov, best.blur_px, best.levels, best.rms, best.pixels)
 
 
@@ -366,10 +364,10 @@ class _Problem:
         target = Target(self.code, self.design, self.diameter_mm, R, t)
         return reflectance_image(self.tile.camera, target, supersample=self.supersample)
 
-    def cost(self, t: F64, R: F64, blur: float, area: F64 | None = None) -> _Cost:
+    def cost(self, t: F64, R: F64, blur: float) -> _Cost:
         """The model at ``(t, R, blur)`` with its best levels."""
-        a = self.area(t, R) if area is None else area
-        g = _blurred(a, blur)
+        a = self.area(t, R)
+        g = defocus(a, blur)
         m = g[self.mask]
         # Levels by linear least squares on (1 - m, m) (variable projection).
         s0, s1, s2 = float(len(m)), float(m.sum()), float(m @ m)
@@ -464,11 +462,11 @@ class _Problem:
             # pose, and half the renders of central differences fit as well (45 px ring at
             # 60 deg, 80 noise images: z std 0.40 mm against 0.42, 100 ms against 150 a fit).
             moved = self.area(t + basis @ d, R) if k < 3 else self.area(t, _rotation(d) @ R)
-            diff = _blurred(moved - at.area, blur)[self.mask]
+            diff = defocus(moved - at.area, blur)[self.mask]
             cols.append(contrast * diff / steps[k])
         hb = 0.02
-        lo = _blurred(at.area, max(blur - hb, 1e-3))[self.mask]
-        hi = _blurred(at.area, blur + hb)[self.mask]
+        lo = defocus(at.area, max(blur - hb, 1e-3))[self.mask]
+        hi = defocus(at.area, blur + hb)[self.mask]
         cols.append(contrast * (hi - lo) / (2.0 * hb))
         m = at.blurred[self.mask]
         cols.append(1.0 - m)
@@ -494,10 +492,3 @@ def _rotation(w: F64) -> F64:
     """Rotation matrix of the rotation vector ``w`` (camera frame)."""
     rot, _ = cv2.Rodrigues(np.asarray(w, dtype=np.float64))
     return np.asarray(rot, dtype=np.float64)
-
-
-def _blurred(area: F64, blur: float) -> F64:
-    """The camera's Gaussian blur, as the renderer applies it."""
-    return np.asarray(
-        cv2.GaussianBlur(area, (0, 0), blur, borderType=cv2.BORDER_REFLECT), dtype=np.float64
-    )

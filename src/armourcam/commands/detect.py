@@ -74,7 +74,7 @@ def register(subparsers: Any) -> None:
         help=(
             "with --camera: refine each pose by fitting the rendered fiducial to the image "
             "(pose_estimator.image_fit: several times more precise in depth for small or "
-            "oblique fiducials, about 0.1-0.2 s per fiducial)"
+            "oblique fiducials, about 0.1 s per fiducial at 35-45 px, 1 s at 120 px)"
         ),
     )
     parser.set_defaults(func=run)
