@@ -182,40 +182,37 @@ def run_case(
     return stats, seconds
 
 
-def run_task(
-    task: tuple[str, int, list[int], int, bool, str, bool],
-) -> tuple[
-    dict[tuple[str, int, float, float, int], CaseStats], dict[tuple[str, int, float], float], float
-]:
-    """All slants and degradations of one (design, size), and its CRB; seeded per task."""
-    design, size, slants, n_images, with_crb, subpixel, image_fit = task
-    rng = np.random.default_rng([20240601, size, DESIGNS.index(design)])
+def run_slant(
+    task: tuple[str, int, int, int, str, bool],
+) -> tuple[dict[tuple[str, int, float, float, int], CaseStats], float]:
+    """All degradations of one (design, size, slant); seeded per task, so that the tasks can run
+    in any order and split over any number of workers."""
+    design, size, slant, n_images, subpixel, image_fit = task
+    rng = np.random.default_rng([20240601, size, DESIGNS.index(design), slant])
     cases = {}
     seconds = 0.0
-    t0 = time.perf_counter()
-    for slant in slants:
-        base, z = base_image(design, size, slant)
-        for blur, noise in DEGRADATIONS:
-            st, sec = run_case(
-                design, size, base, z, blur, noise, n_images, rng, subpixel, image_fit
-            )
-            seconds += sec
-            cases[(design, size, blur, noise, slant)] = st
+    base, z = base_image(design, size, slant)
+    for blur, noise in DEGRADATIONS:
+        st, sec = run_case(design, size, base, z, blur, noise, n_images, rng, subpixel, image_fit)
+        seconds += sec
+        cases[(design, size, blur, noise, slant)] = st
+    return cases, seconds
+
+
+def run_crb(task: tuple[str, int]) -> dict[tuple[str, int, float], float]:
+    """The Cramér-Rao bound of z for one (design, size): the worst over :data:`CRB_SLANTS`."""
+    design, size = task
+    cam = tile_camera(size)
+    z = F_PX * DIAMETER_MM / size
     crb = {}
-    if with_crb:
-        cam = tile_camera(size)
-        z = F_PX * DIAMETER_MM / size
-        for blur in (0.5, 0.7):
-            worst = 0.0
-            for slant in CRB_SLANTS:
-                rot = rotation_from_slant_tilt(np.radians(slant))
-                t = Target(CODE, design, DIAMETER_MM, rot, np.array([0.0, 0.0, z]))
-                worst = max(worst, depth_bound(cam, t, blur_sigma=blur, supersample=16).pose)
-            crb[(design, size, blur)] = worst
-    print(
-        f"  {design} {size} px done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True
-    )
-    return cases, crb, seconds
+    for blur in (0.5, 0.7):
+        worst = 0.0
+        for slant in CRB_SLANTS:
+            rot = rotation_from_slant_tilt(np.radians(slant))
+            t = Target(CODE, design, DIAMETER_MM, rot, np.array([0.0, 0.0, z]))
+            worst = max(worst, depth_bound(cam, t, blur_sigma=blur, supersample=16).pose)
+        crb[(design, size, blur)] = worst
+    return crb
 
 
 def read_paper() -> dict[tuple[str, float, float, int], float]:
@@ -253,7 +250,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--json", type=Path, help="write all per-case numbers here")
     parser.add_argument(
-        "--jobs", type=int, default=1, help="worker processes (one per design/size)"
+        "--jobs",
+        type=int,
+        default=1,
+        help="worker processes (tasks: one per design, size and slant)",
     )
     args = parser.parse_args(argv)
     slants = [0, 20, 40, 60, 69] if args.quick else list(range(90))
@@ -266,23 +266,37 @@ def main(argv: list[str] | None = None) -> int:
     sizes = [int(s) for s in args.sizes.split(",")]
     paper = read_paper()
     t_start = time.perf_counter()
+    # One task per (design, size, slant), the largest fiducials (the costliest fits) first, so
+    # that the workers stay busy to the end.
     tasks = [
-        (d, s, slants, n_images, not args.no_crb, args.subpixel, args.image_fit)
+        (d, s, a, n_images, args.subpixel, args.image_fit)
+        for s in sorted(sizes, reverse=True)
         for d in designs
-        for s in sizes
+        for a in slants
     ]
+    crb_tasks = [] if args.no_crb else [(d, s) for d in designs for s in sizes]
     cases: dict[tuple[str, int, float, float, int], CaseStats] = {}
     crb: dict[tuple[str, int, float], float] = {}
     det_seconds = 0.0
     if args.jobs > 1:
         with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
-            results = pool.map(run_task, tasks)
+            results = []
+            for k, part in enumerate(pool.imap_unordered(run_slant, tasks), 1):
+                results.append(part)
+                if k % 10 == 0 or k == len(tasks):
+                    elapsed = time.perf_counter() - t_start
+                    print(
+                        f"  {k}/{len(tasks)} slants ({elapsed:.0f} s)", file=sys.stderr, flush=True
+                    )
+            crbs = pool.map(run_crb, crb_tasks, chunksize=1)
     else:
-        results = [run_task(t) for t in tasks]
-    for part_cases, part_crb, sec in results:
+        results = [run_slant(t) for t in tasks]
+        crbs = [run_crb(t) for t in crb_tasks]
+    for part_cases, sec in results:
         cases.update(part_cases)
-        crb.update(part_crb)
         det_seconds += sec
+    for part_crb in crbs:
+        crb.update(part_crb)
     total = time.perf_counter() - t_start
     print(
         f"# pose_tables: {'quick' if args.quick else 'full'} run, {len(slants)} slants x "
