@@ -65,7 +65,7 @@ STEP_PX = 0.15
 MAX_STEP_PX = 1.0
 #: Largest number of Levenberg-Marquardt steps. Near fronto-parallel the tilt acts at second
 #: order, each step's Jacobian is soon stale and the fit creeps: on 120 px ``dot`` fiducials at
-#: 0 deg (blur 0.5, noise 1 %) 8 steps and 3 Jacobians left 3 fits in 10 unconverged (residual
+#: 0 deg (blur 0.5, noise 1 %) 8 steps and 3 Jacobians left 4 fits in 10 unconverged (residual
 #: 1.1-1.6x the noise, depth off by up to 0.7 mm; z sd 4x the prediction); 20 and 8 converge
 #: them all. Fits that converge sooner stop sooner: where 8 steps sufficed (ring 45 px at 60 deg,
 #: dot 45 px at 66 deg, dot 60 px at 30 deg) result and cost are unchanged.
