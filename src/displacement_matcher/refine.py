@@ -167,8 +167,10 @@ def match_units(
                 continue
             if u.n_matched == 1:
                 lone.update((i, pair_of[i]) for i in u.baseline_indices if i in pair_of)
+        # Units seen in place, for the template's rules (found once per pass).
+        still = _units_in_place(units, baseline, current, pair_of) if template is not None else []
         covered = (
-            _still_neighbours_faces(baseline, current, units, template, span, pair_of, lone)
+            _still_neighbours_faces(baseline, current, still, template, span, lone)
             if template is not None
             else set()
         )
@@ -237,7 +239,7 @@ def match_units(
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
         excluded |= _contested_lone_pairs(baseline, current, units, pred, lone, span)
         if template is not None:
-            excluded |= _neighbour_faces_taken(result, units, template, span, pair_of)
+            excluded |= _neighbour_faces_taken(result, units, still, template, span, pair_of)
         inputs = (pred, gate, sorted(excluded), groups[0])
         if last_inputs is not None and _same_inputs(inputs, last_inputs):
             # The pass would repeat the last one exactly (same predictions, gates, exclusions
@@ -492,6 +494,7 @@ def _unit_conflicts(
 def _neighbour_faces_taken(
     result: MatchResult,
     units: Sequence[UnitMotion],
+    still: Sequence[UnitMotion],
     template: UnitSpec,
     span_mm: float,
     match_of: dict[int, int],
@@ -507,14 +510,14 @@ def _neighbour_faces_taken(
     positions within 5 mm RMS, normals within 30 deg), the fiducial is that neighbour's newly
     seen face and the pair is ruled out. A mover that landed beside a neighbour keeps its
     claim unless its face sits exactly where one of the neighbour's would
-    (:func:`_fits_template`). ``match_of``: the result's pairs, baseline -> current index.
+    (:func:`_fits_template`). ``still``: :func:`_units_in_place` of ``units``; ``match_of``:
+    the result's pairs, baseline -> current index.
     """
     base, cur = result.baseline, result.current
 
     def moved(i: int) -> bool:
         return not _seen_in_place(cur[match_of[i]].position_mm, base[i].position_mm)
 
-    still = _units_in_place(units, base, cur, match_of)
     out: set[tuple[int, int]] = set()
     for u in units:
         if u.n_matched != 1:
@@ -530,12 +533,9 @@ def _neighbour_faces_taken(
             if v.unit == u.unit or j in v.current_indices:
                 continue
             shown = [cur[k] for k in v.current_indices]
-            if int(taken.code) in {int(p.code) for p in shown}:
-                continue
-            near = np.linalg.norm(np.array([p.position_mm for p in shown]) - pos, axis=1)
-            if not np.min(near) <= span_mm:
-                continue
-            if _fits_template([*shown, taken], template):
+            if _lacks_code_near(shown, int(taken.code), pos, span_mm) and _fits_template(
+                [*shown, taken], template
+            ):
                 out.add((i, j))
                 break
     return out
@@ -544,10 +544,9 @@ def _neighbour_faces_taken(
 def _still_neighbours_faces(
     baseline: Sequence[FiducialPose],
     current: Sequence[FiducialPose],
-    units: Sequence[UnitMotion],
+    still: Sequence[UnitMotion],
     template: UnitSpec,
     span_mm: float,
-    match_of: dict[int, int],
     lone: dict[int, int],
 ) -> set[int]:
     """Lone pairs' baseline fiducials that are a still neighbour's own face, depth aside.
@@ -558,31 +557,44 @@ def _still_neighbours_faces(
     one of its matches still, across the line of sight) and the template fitted to its own
     baseline faces (:func:`template_pose`) puts its face of that code, missing from them,
     where the fiducial is seen (within :data:`STILL_SHOWN_MM` across the line of sight), the
-    fiducial is that face. Returns the baseline indices of such pairs."""
+    fiducial is that face. ``still``: the units seen in place (:func:`_units_in_place`).
+    Returns the baseline indices of such pairs."""
     out: set[int] = set()
     if not lone:
         return out
     # Each still unit's baseline faces and where its template puts the unit (fitted once).
-    still = []
-    for v in _units_in_place(units, baseline, current, match_of):
+    fitted = []
+    for v in still:
         faces = [baseline[k] for k in v.baseline_indices]
         fit = template_pose(faces, template)
         if fit is not None:
-            still.append((v, faces, fit))
+            fitted.append((v, faces, fit))
     for i, j in lone.items():
         p = baseline[i]
         pos = np.asarray(p.position_mm, dtype=np.float64)
         if _seen_in_place(current[j].position_mm, pos) or int(p.code) not in template.positions_mm:
             continue
         local = np.asarray(template.positions_mm[int(p.code)], dtype=np.float64)
-        for v, faces, (R, t) in still:
-            if i in v.baseline_indices or int(p.code) in {int(f.code) for f in faces}:
+        for v, faces, (R, t) in fitted:
+            if i in v.baseline_indices:
                 continue
-            near = np.linalg.norm(np.array([f.position_mm for f in faces]) - pos, axis=1)
-            if np.min(near) <= span_mm and _seen_in_place(R @ local + t, pos):
+            if _lacks_code_near(faces, int(p.code), pos, span_mm) and _seen_in_place(
+                R @ local + t, pos
+            ):
                 out.add(i)
                 break
     return out
+
+
+def _lacks_code_near(
+    faces: Sequence[FiducialPose], code: int, point: NDArray[np.float64], span_mm: float
+) -> bool:
+    """Whether a unit showing ``faces`` has none of ``code`` and one within ``span_mm`` of
+    ``point``: a unit that could own a face of that code seen there."""
+    if code in {int(f.code) for f in faces}:
+        return False
+    near = np.linalg.norm(np.array([f.position_mm for f in faces]) - point, axis=1)
+    return bool(np.min(near) <= span_mm)
 
 
 def _units_in_place(
