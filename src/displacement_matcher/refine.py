@@ -38,12 +38,12 @@ from .units import (
     UnitMap,
     UnitSpec,
     assign_units,
-    group_fiducials,
     mirror_normals,
     still_in_place,
     template_pose,
     unit_motions,
     unit_normals,
+    units_of,
 )
 
 
@@ -99,7 +99,9 @@ def match_units(
     by that unit's own matches (:func:`_contested_lone_pairs`; where that unit is itself
     measured through one pair, by the rotation its pair's normals and the fiducial's own fix,
     :func:`_turned_onto`) or by the template fitted to a still neighbour's faces
-    (:func:`_neighbour_faces_taken`). Each pass is still one exact global matching.
+    (:func:`_neighbour_faces_taken`). A unit none of whose faces matched is found again where
+    the faces it shows now, none matched either, fit the template
+    (:func:`.units.unit_motions`). Each pass is still one exact global matching.
 
     Parameters
     ----------
@@ -132,23 +134,20 @@ def match_units(
         "groups": groups,
         "centres": {},
     }
-    units, unassigned = unit_motions(result, **kw)
     span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
     template = unit_map.template if unit_map is not None else None
     explicit = unit_map is not None and bool(unit_map.units)
     # The current state's own units: fiducials seen together now belong to one unit.
     cur_groups: list[list[int]] = []
     if not explicit:
-        cur_ok = [j for j, p in enumerate(current) if np.all(np.isfinite(p.position_mm))]
-        found = group_fiducials(
-            [current[j] for j in cur_ok], span_mm=span, template=template, tol_mm=rigid_tol_mm
-        )
-        cur_groups = [[cur_ok[k] for k in g] for g in found]
-    gate_used = float(match_kw.get("gate_mm", result.params.gate_mm))
-    excluded: set[tuple[int, int]] = set()
+        cur_groups = units_of(current, span, template, rigid_tol_mm)
+        kw["cur_groups"] = cur_groups
     # Faces still seen where they were (depth aside): baseline index -> current index.
     in_place = still_in_place(baseline, current)
     kw["in_place"] = in_place
+    units, unassigned = unit_motions(result, **kw)
+    gate_used = float(match_kw.get("gate_mm", result.params.gate_mm))
+    excluded: set[tuple[int, int]] = set()
     held: set[str] = set()  # units looked for where they were (below)
     passes = 1
     last_inputs: tuple[Any, ...] | None = None
@@ -276,7 +275,7 @@ def assign_unit_groups(
     hidden face grabs the mover's same-code face 10-20 mm away, cheaper than the mover's own
     30-40 mm (mostly along depth, the weakest axis of a monocular pose), and the mover's motion
     is lost. A unit is one rigid body, and each current unit belongs to one baseline unit only:
-    a baseline unit and a current group (:func:`group_fiducials` on the current poses) are
+    a baseline unit and a current group (:func:`.units.group_fiducials` on the current poses) are
     candidates when at least two codes are on both and their same-code pairs agree on one
     translation within ``tol_mm`` across the line of sight (two coherent fiducials are evidence
     one stranger is not). Each shared fiducial is worth ``gate_mm`` (what leaving both sides of a
@@ -296,7 +295,7 @@ def assign_unit_groups(
     base_units : sequence of (str, list of int)
         Baseline units (id, baseline indices), as from :func:`assign_units`.
     cur_groups : sequence of list of int
-        The current state's units (current indices), as from :func:`group_fiducials`.
+        The current state's units (current indices), as from :func:`.units.units_of`.
     gate_mm : float
         The matching gate (mm).
     tol_mm : float

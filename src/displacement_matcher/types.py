@@ -177,10 +177,13 @@ class UnitMotion:
         The unit's fiducials in each set.
     n_matched : int
         Fiducials of the unit matched between the two sets.
-    method : {"rigid", "translation", "none"}
+    method : {"rigid", "translation", "template", "none"}
         ``rigid``: weighted Kabsch/Umeyama over >= 3 consistently matched fiducials, or over >= 2
         whose normals (before and after) fix the rotation; ``translation``: otherwise, rotation
-        unknown (identity); ``none``: nothing to measure (``status`` says why).
+        unknown (identity); ``template``: none of its faces matched, but the faces it shows now
+        were found together and the unit's template fitted to them (its motion is between the
+        template's poses before and now; translation only when one face located it before);
+        ``none``: nothing to measure (``status`` says why).
     rotation : (3, 3) ndarray
         Rotation, camera frame (identity when unknown).
     translation_mm : (3,) ndarray
@@ -210,7 +213,7 @@ class UnitMotion:
     baseline_indices: tuple[int, ...]
     current_indices: tuple[int, ...]
     n_matched: int
-    method: Literal["rigid", "translation", "none"]
+    method: Literal["rigid", "translation", "template", "none"]
     rotation: NDArray[np.float64]
     translation_mm: NDArray[np.float64]
     rotation_deg: float | None

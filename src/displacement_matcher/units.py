@@ -597,6 +597,17 @@ def _rotation_deg(R: NDArray[np.float64]) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
+def units_of(
+    poses: Sequence[FiducialPose], span_mm: float, template: UnitSpec | None, tol_mm: float
+) -> list[list[int]]:
+    """Units of one state (:func:`group_fiducials` on its finite poses), as indices of ``poses``."""
+    ok = [j for j, p in enumerate(poses) if np.all(np.isfinite(p.position_mm))]
+    found = group_fiducials(
+        [poses[j] for j in ok], span_mm=span_mm, template=template, tol_mm=tol_mm
+    )
+    return [[ok[k] for k in g] for g in found]
+
+
 def assign_units(
     result: MatchResult,
     *,
@@ -645,6 +656,7 @@ def unit_motions(
     groups: tuple[list[tuple[str, list[int]]], list[int]] | None = None,
     centres: dict[str, NDArray[np.float64] | None] | None = None,
     in_place: dict[int, int] | None = None,
+    cur_groups: Sequence[list[int]] | None = None,
 ) -> tuple[tuple[UnitMotion, ...], tuple[int, ...]]:
     """Per-unit rigid motion from a fiducial matching.
 
@@ -655,8 +667,11 @@ def unit_motions(
     away from one the unit shows, within the unit span. A face pointing away from faces a unit
     showed before (with template normals) is evidence that the unit turned over: such faces go
     one to one, within the matching gate, to units that lost all their old faces
-    (:func:`_overturn_evidence`). ``in_place``: :func:`still_in_place` of the result's baseline
-    and current poses where the caller has it (computed here otherwise).
+    (:func:`_overturn_evidence`). With template positions, a unit that matched nothing is found
+    again where a current unit none of whose faces matched fits it (:func:`_relocated`; method
+    ``template``). ``in_place``: :func:`still_in_place` of the result's baseline and current
+    poses, and ``cur_groups``: the current state's units (:func:`group_fiducials` on the current
+    poses, current indices), where the caller has them (computed here otherwise).
 
     Returns
     -------
@@ -718,6 +733,31 @@ def unit_motions(
             cur_of[n].append(d.current_index)
             appeared_of[n] += 1
             taken.add(d.current_index)
+    relocated: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
+    if owner_codes is None and template is not None and template.positions_mm:
+        if cur_groups is None:
+            cur_groups = units_of(cur, span, template, rigid_tol_mm)
+        shown = still_in_place(base, cur) if in_place is None else in_place
+        evidence = {n for n in cur_of if appeared_of[n]}
+        for n, faces, R, t in _relocated(
+            [d for d in appeared if d.current_index not in taken],
+            unit_list,
+            base,
+            cur,
+            pairs_of,
+            result,
+            cur_groups,
+            template,
+            # The old face's motion: the unit's (at most the matching gate) and its turn about
+            # its origin (a face is about half a span from it).
+            result.params.gate_mm + 0.5 * span,
+            evidence,
+            shown,
+        ):
+            cur_of[n].extend(faces)
+            appeared_of[n] += len(faces)
+            taken.update(faces)
+            relocated[n] = (R, t)
     for d in appeared:
         assert d.current_index is not None and d.after_mm is not None
         if d.current_index in taken:
@@ -752,6 +792,23 @@ def unit_motions(
 
     out: list[UnitMotion] = []
     for n, (name, ix) in enumerate(unit_list):
+        if n in relocated:
+            assert template is not None
+            n_cross = sum(result.displacements[k].label == "cross_code" for k in pairs_of[n])
+            out.append(
+                _relocated_motion(
+                    name,
+                    ix,
+                    tuple(cur_of[n]),
+                    vanished_of[n],
+                    appeared_of[n],
+                    n_cross,
+                    base,
+                    relocated[n],
+                    template,
+                )
+            )
+            continue
         before_codes = {int(base[i].code) for i in ix}
         new_codes = tuple(sorted({int(cur[j].code) for j in cur_of[n]} - before_codes))
         out.append(
@@ -839,6 +896,7 @@ def _overturn_evidence(
     # A unit still showing an old face where it was did not turn over, whatever that face was
     # matched to.
     shown = still_in_place(base, cur) if in_place is None else in_place
+    lone_cross = {j for n, js in cur_of.items() if n not in has_same and len(js) == 1 for j in js}
     cols = [
         n
         for n, (_, ix) in enumerate(unit_list)
@@ -852,7 +910,9 @@ def _overturn_evidence(
         code = int(d.code_after)
         for c, n in enumerate(cols):
             ix = unit_list[n][1]
-            now = {int(cur[j].code) for j in cur_of[n]}
+            # A lone cross-code partner is no evidence of what the unit shows (mostly a
+            # stranger, see _motion_of_unit): it does not rule the face out.
+            now = {int(cur[j].code) for j in cur_of[n] if j not in lone_cross}
             if code in now or _opposed(normals, code, now):
                 continue
             if not _opposed(normals, code, {int(base[i].code) for i in ix}):
@@ -863,6 +923,129 @@ def _overturn_evidence(
                 cost[r, c] = dist
     ri, ci = linear_sum_assignment(cost)
     return [(rows[r], cols[c]) for r, c in zip(ri, ci, strict=True) if cost[r, c] < big]
+
+
+def _relocated(
+    appeared: Sequence[Any],
+    unit_list: Sequence[tuple[str, list[int]]],
+    base: tuple[FiducialPose, ...],
+    cur: tuple[FiducialPose, ...],
+    pairs_of: Mapping[int, list[int]],
+    result: MatchResult,
+    cur_groups: Sequence[list[int]],
+    template: UnitSpec,
+    limit_mm: float,
+    skip_units: set[int],
+    shown: dict[int, int],
+) -> list[tuple[int, list[int], NDArray[np.float64], NDArray[np.float64]]]:
+    """Lost units found again as a whole: current units none of whose faces was matched.
+
+    A unit that moved far often shows none of the faces it showed before (one or two, the rest
+    hidden by its neighbours or turned away) and so matches nothing, while faces it did not show
+    before now appear together where it went. Fiducial by fiducial there is no evidence; as a
+    unit there is: the template fitted to those faces (:func:`template_pose`) says where each of
+    the lost unit's old faces now is. Candidates are current units (``cur_groups``) of two or
+    more faces, all of them appeared, that the template fits, and baseline units with no
+    same-code match, at most one cross-code one (which alone does not measure a unit) and no
+    face still seen in place; the cost of a pair is the mean distance from the unit's old faces
+    to where the fitted template puts them now, below ``limit_mm``, and the assignment is one to
+    one at minimum total cost (several lost units may share a neighbourhood).
+
+    Returns
+    -------
+    list of (int, list of int, (3, 3) ndarray, (3,) ndarray)
+        The unit (index into ``unit_list``), the current faces it now shows, and the template's
+        pose there (``R``, ``t``: camera frame position of a template point ``R @ p + t``).
+    """
+    free = {int(d.current_index) for d in appeared if d.current_index is not None}
+    found: list[tuple[list[int], NDArray[np.float64], NDArray[np.float64]]] = []
+    for g in cur_groups:
+        if len(g) < 2 or not all(j in free for j in g):
+            continue
+        fit = template_pose([cur[j] for j in g], template)
+        if fit is not None:
+            found.append((list(g), fit[0], fit[1]))
+    if not found:
+        return []
+    rows = []
+    for n, (_, ix) in enumerate(unit_list):
+        if not ix or n in skip_units or any(i in shown for i in ix):
+            continue
+        labels = [result.displacements[k].label for k in pairs_of[n]]
+        if "same_code" in labels or len(labels) > 1:
+            continue
+        if all(int(base[i].code) in template.positions_mm for i in ix):
+            rows.append(n)
+    if not rows:
+        return []
+    big = 10.0 * limit_mm
+    cost = np.full((len(rows), len(found)), big)
+    for r, n in enumerate(rows):
+        ix = unit_list[n][1]
+        old = np.array([base[i].position_mm for i in ix], dtype=np.float64)
+        local = np.array([template.positions_mm[int(base[i].code)] for i in ix])
+        for c, (_, R, t) in enumerate(found):
+            d = float(np.mean(np.linalg.norm(local @ R.T + t - old, axis=1)))
+            if d < limit_mm:
+                cost[r, c] = d
+    ri, ci = linear_sum_assignment(cost)
+    return [
+        (rows[r], found[c][0], found[c][1], found[c][2])
+        for r, c in zip(ri.tolist(), ci.tolist(), strict=True)
+        if cost[r, c] < big
+    ]
+
+
+def _relocated_motion(
+    name: str,
+    ix: list[int],
+    current_indices: tuple[int, ...],
+    n_vanished: int,
+    n_appeared: int,
+    n_cross: int,
+    base: tuple[FiducialPose, ...],
+    pose_now: tuple[NDArray[np.float64], NDArray[np.float64]],
+    template: UnitSpec,
+) -> UnitMotion:
+    """Motion of a unit found again by :func:`_relocated` (method ``template``).
+
+    With the template also fitted to its baseline faces the motion is the rigid one between the
+    two template poses, at the unit's origin; otherwise (one old face) it is the displacement of
+    that face's point, with the rotation unknown.
+    """
+    codes = tuple(int(base[i].code) for i in ix)
+    R_now, t_now = pose_now
+    before = np.array([base[i].position_mm for i in ix], dtype=np.float64)
+    local = np.array([template.positions_mm[c] for c in codes])
+    fit = template_pose([base[i] for i in ix], template)
+    if fit is not None:
+        R_b, t_b = fit
+        rotation = R_now @ R_b.T
+        ref = np.asarray(t_b, dtype=np.float64)
+        trans = np.asarray(t_now - t_b, dtype=np.float64)
+        rot_deg: float | None = _rotation_deg(rotation)
+    else:
+        rotation = np.eye(3)
+        ref = before.mean(axis=0)
+        trans = np.mean(local @ R_now.T + t_now - before, axis=0)
+        rot_deg = None
+    return UnitMotion(
+        name,
+        codes,
+        tuple(ix),
+        current_indices,
+        0,
+        "template",
+        rotation,
+        trans,
+        rot_deg,
+        ref,
+        0.0,
+        False,
+        n_vanished,
+        n_appeared,
+        n_cross,
+    )
 
 
 def _motion_of_unit(

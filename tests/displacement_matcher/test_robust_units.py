@@ -510,3 +510,70 @@ def test_covered_face_posed_near_is_not_a_lone_mover() -> None:
     assert pair.current_index is None
     seen = doc["unit_baseline_indices"][0]  # a face seen in place before and after
     assert next(u for u in units if seen in u.baseline_indices).status == "still"
+
+
+@pytest.mark.parametrize("turn_deg", [0.0, 20.0])
+@pytest.mark.parametrize("move_mm", [(0.0, 35.0, -10.0), (-30.0, -20.0, 5.0)])
+def test_lost_unit_is_found_again_by_the_faces_it_shows_now(
+    move_mm: tuple[float, float, float], turn_deg: float
+) -> None:
+    """A unit seen through one face before moves 1.5-1.8 Dn and shows two other faces now.
+
+    No fiducial of it matches (its old face is hidden now, its new ones were hidden before), so
+    fiducial by fiducial it is lost. Its new faces are found together and the template fitted
+    to them puts its old face where it went: the unit is displaced by that face's true motion,
+    while its neighbours stay still and a neighbour whose one face is hidden now, with no
+    faces of it seen anywhere, stays lost.
+    """
+    centres = _row(3)
+    mid = _unit(centres[1], R0)
+    old = next(p for p in mid if p.code == 29)
+    lone = next(p for p in _unit(centres[2], R0) if p.code == 3)
+    base = [*_unit(centres[0], R0), old, lone]
+    turn = _rot([0.2, 0.3, 1.0], turn_deg) @ R0
+    moved = _unit(centres[1] + np.array(move_mm), turn)
+    assert sorted(p.code for p in moved) == [3, 17, 29]
+    cur = _unit(centres[0], R0) + [p for p in moved if p.code != 29]
+    k29 = list(GEO.codes).index(29)
+    truth = centres[1] + np.array(move_mm) + turn @ GEO.positions_mm[k29] - old.position_mm
+    an = match_units(base, cur, unit_map=UMAP, gate_mm=50.0)
+    assert not any(d.is_match and d.baseline_index in (3, 4) for d in an.result.displacements)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    assert summary.displaced_units == 1
+    by_index = {u.baseline_indices: u for u in units}
+    found = by_index[(3,)]
+    assert found.method == "template" and found.status == "displaced"
+    assert sorted(int(cur[j].code) for j in found.current_indices) == [3, 17]
+    np.testing.assert_allclose(found.translation_mm, truth, atol=1.0)
+    assert by_index[(4,)].status == "lost"
+    assert by_index[(0, 1, 2)].status == "still"
+
+
+def test_a_lone_cross_code_partner_does_not_hide_an_overturn() -> None:
+    """A unit seen through one face turns over and rolls away, showing only its code-41 face;
+    a neighbour's face of another code, hidden before, shows now near the old face.
+
+    The global matching pairs the old face with the neighbour's across codes, which alone says
+    nothing of where the unit went (mostly a stranger; refinement passes may or may not undo
+    it). That stranger must not rule the turned-over face out (a unit cannot show 41 beside the
+    code the stranger has): the unit is reported overturned, the neighbour is not.
+    """
+    a = np.array([0.0, 0.0, 1800.0])
+    c = a + np.array([5.0, 25.0, 0.0])
+    lone = [p for p in _unit(a, R0) if p.code == 17]
+    neighbour = _unit(c, R0)
+    base = lone + [p for p in neighbour if p.code != 3]
+    flipped = _unit(a + np.array([-10.0, 10.0, -10.0]), FLIP)
+    cur = neighbour + flipped
+    first = match(base, cur, gate_mm=50.0)
+    (cross,) = [d for d in first.displacements if d.label == "cross_code"]
+    assert cross.baseline_index == 0 and int(cur[cross.current_index].code) == 3
+    for found in (
+        unit_motions(first, unit_map=UMAP)[0],  # with the cross-code pair
+        match_units(base, cur, unit_map=UMAP, gate_mm=50.0).units,
+    ):
+        units, summary = assess(found, thresholds(GEO.dn_mm))
+        by_index = {u.baseline_indices: u for u in units}
+        assert by_index[(0,)].overturned and by_index[(0,)].status == "overturned"
+        assert by_index[(1, 2)].status == "still"
+        assert summary.overturned_units == 1
