@@ -1016,7 +1016,6 @@ def _relocated_motion(
     codes = tuple(int(base[i].code) for i in ix)
     R_now, t_now = pose_now
     before = np.array([base[i].position_mm for i in ix], dtype=np.float64)
-    local = np.array([template.positions_mm[c] for c in codes])
     fit = template_pose([base[i] for i in ix], template)
     if fit is not None:
         R_b, t_b = fit
@@ -1027,6 +1026,7 @@ def _relocated_motion(
     else:
         rotation = np.eye(3)
         ref = before.mean(axis=0)
+        local = np.array([template.positions_mm[c] for c in codes])
         trans = np.mean(local @ R_now.T + t_now - before, axis=0)
         rot_deg = None
     return UnitMotion(
