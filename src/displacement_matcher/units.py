@@ -717,6 +717,10 @@ def unit_motions(
     }
     appeared = result.by_label("appeared")
     taken: set[int] = set()
+    # Faces still seen in place, for both unit-level rules below (found once).
+    shown: dict[int, int] = {}
+    if owner_codes is None and template is not None:
+        shown = still_in_place(base, cur) if in_place is None else in_place
     if owner_codes is None and normals:
         # Faces opposite to those a unit showed first: they can only be an overturned unit's.
         for d, n in _overturn_evidence(
@@ -728,7 +732,7 @@ def unit_motions(
             has_same,
             normals,
             result.params.gate_mm,
-            in_place,
+            shown,
         ):
             cur_of[n].append(d.current_index)
             appeared_of[n] += 1
@@ -737,7 +741,6 @@ def unit_motions(
     if owner_codes is None and template is not None and template.positions_mm:
         if cur_groups is None:
             cur_groups = units_of(cur, span, template, rigid_tol_mm)
-        shown = still_in_place(base, cur) if in_place is None else in_place
         evidence = {n for n in cur_of if appeared_of[n]}
         for n, faces, R, t in _relocated(
             [d for d in appeared if d.current_index not in taken],
@@ -745,7 +748,7 @@ def unit_motions(
             base,
             cur,
             pairs_of,
-            result,
+            has_same,
             cur_groups,
             template,
             # The old face's motion: the unit's (at most the matching gate) and its turn about
@@ -873,7 +876,7 @@ def _overturn_evidence(
     has_same: set[int],
     normals: Mapping[int, NDArray[np.float64]],
     gate_mm: float,
-    in_place: dict[int, int] | None = None,
+    shown: Mapping[int, int],
 ) -> list[tuple[Any, int]]:
     """Appeared faces opposite to those a unit showed, given one to one to the units they fit.
 
@@ -893,9 +896,8 @@ def _overturn_evidence(
     rows = [d for d in appeared if d.code_after is not None and int(d.code_after) in normals]
     if not rows:
         return []
-    # A unit still showing an old face where it was did not turn over, whatever that face was
-    # matched to.
-    shown = still_in_place(base, cur) if in_place is None else in_place
+    # A unit still showing an old face where it was (``shown``, :func:`still_in_place`) did not
+    # turn over, whatever that face was matched to.
     lone_cross = {j for n, js in cur_of.items() if n not in has_same and len(js) == 1 for j in js}
     cols = [
         n
@@ -931,12 +933,12 @@ def _relocated(
     base: tuple[FiducialPose, ...],
     cur: tuple[FiducialPose, ...],
     pairs_of: Mapping[int, list[int]],
-    result: MatchResult,
+    has_same: set[int],
     cur_groups: Sequence[list[int]],
     template: UnitSpec,
     limit_mm: float,
     skip_units: set[int],
-    shown: dict[int, int],
+    shown: Mapping[int, int],
 ) -> list[tuple[int, list[int], NDArray[np.float64], NDArray[np.float64]]]:
     """Lost units found again as a whole: current units none of whose faces was matched.
 
@@ -969,10 +971,9 @@ def _relocated(
         return []
     rows = []
     for n, (_, ix) in enumerate(unit_list):
-        if not ix or n in skip_units or any(i in shown for i in ix):
+        if not ix or n in skip_units or n in has_same or len(pairs_of[n]) > 1:
             continue
-        labels = [result.displacements[k].label for k in pairs_of[n]]
-        if "same_code" in labels or len(labels) > 1:
+        if any(i in shown for i in ix):
             continue
         if all(int(base[i].code) in template.positions_mm for i in ix):
             rows.append(n)
