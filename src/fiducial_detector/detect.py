@@ -495,7 +495,7 @@ def _finish(
         confirmed = {int(j) for j in tj[ok]}
     checked = {j for j, _, _ in thin}
     final = [(j, reading, k) for j, reading, k in chosen if j not in checked or j in confirmed]
-    groups = fit_arcs(grey, [fitted[j] for j, _, _ in final], design)
+    groups = fit_arcs(grey, [fitted[j] for j, _, _ in final], design, noise)
     return _detections(design, groups, [(reading, k) for _, reading, k in final])
 
 
@@ -581,7 +581,7 @@ def fit_design_circles(
     if method == "ml" or len(seeds) == 0:
         return _fit_ml(grey, seeds, design, noise_std)
     src = np.asarray(grey, dtype=np.float32)
-    first = _profile_circle(src, design, 0, seeds, None)
+    first = _profile_circle(src, design, 0, seeds, None, noise_std)
     # Where most of the pose circle's lines found no clean edge (a small oblique dot whose
     # windows the code track cuts short), the profiles say too little: the model fit instead.
     weak = ~first.ok | (first.pixels < PROFILE_MIN_COVERAGE * line_counts(seeds))
@@ -607,7 +607,10 @@ def fit_design_circles(
 
 
 def fit_arcs(
-    grey: NDArray[np.generic], groups: list[tuple[Ellipse, ...]], design: FiducialDesign
+    grey: NDArray[np.generic],
+    groups: list[tuple[Ellipse, ...]],
+    design: FiducialDesign,
+    noise_std: float | None = None,
 ) -> list[tuple[Ellipse, ...]]:
     """Each fiducial's fitted circles followed by its design's coding-track arcs (the ``dot``
     design's track's outer edge), where they could be fitted.
@@ -627,6 +630,9 @@ def fit_arcs(
     groups : list of tuple of Ellipse
         Fitted circles of each fiducial, pose circle first (:func:`fit_design_circles`).
     design : FiducialDesign
+    noise_std : float, optional
+        Image noise sd in ``grey``'s units: the arcs' covariances are propagated from it
+        (otherwise from their residuals).
 
     Returns
     -------
@@ -659,6 +665,7 @@ def fit_arcs(
             design.half_way(r),
             passes=ARC_PASSES,
             partial=True,
+            noise_std=None if noise_std is None else _usable_noise(noise_std),
         )
         res.params[:, 0] += u0
         res.params[:, 1] += v0
@@ -770,7 +777,7 @@ def _fit_profiles(
     for k in range(1, len(design.circles)):
         inner = base.copy()
         inner[:, 2:4] *= design.circles[k].radius / r0
-        res = _profile_circle(src, design, k, inner, blur)
+        res = _profile_circle(src, design, k, inner, blur, noise)
         keep = res.ok & _plausible_rows(res.params, inner)
         fits = _ellipses(res, design.circles[k].radius, keep=keep)
         for j, e in zip(found, fits, strict=True):
@@ -796,15 +803,24 @@ def _profile_circle(
     k: int,
     seeds: NDArray[Any],
     blur: NDArray[np.float64] | None,
+    noise: float,
 ) -> EdgeFits:
-    """Edge-profile fits of circle ``k`` of ``design`` from ``(n, 5)`` seeds."""
+    """Edge-profile fits of circle ``k`` of ``design`` from ``(n, 5)`` seeds (covariance from
+    the image noise ``noise``)."""
     circle = design.circles[k]
     polarity = np.full(len(seeds), 1.0 if circle.dark_inside else -1.0)
     rho = design.half_way(circle.radius)
     # Circles seeded from the fitted pose circle (blur known) are within a tenth of a pixel
     # (perspective): one pass, whose first-order window corrections hold that far.
     passes = 4 if blur is None else 1
-    return refine_by_profiles_f32(src, seeds, polarity, rho, passes=passes, spread=blur)
+    return refine_by_profiles_f32(
+        src, seeds, polarity, rho, passes=passes, spread=blur, noise_std=_usable_noise(noise)
+    )
+
+
+def _usable_noise(noise: float) -> float | None:
+    """The image noise sd where it can scale a covariance (None: the fits' residuals must)."""
+    return float(noise) if np.isfinite(noise) and noise > 0 else None
 
 
 def _with_fallback(

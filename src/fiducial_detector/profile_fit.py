@@ -20,10 +20,14 @@ in a first, sparse pass with wide windows; the positions are corrected by it.
 The five ellipse parameters follow by linear least squares on the positions (the signed
 distance's derivatives in the quadratic-form parametrisation of :mod:`.edge_fit`), with one
 re-solve without lines beyond :data:`_OUTLIER_SDS` sds, pass after pass until the ellipse moves
-less than :data:`_CONVERGED_PX`. The covariance is the least-squares one with the positions'
-variance measured from their own residuals (times :data:`_CORRELATION` for neighbouring lines
-sharing pixels), so compression artefacts and model misfit widen it without an image-noise
-estimate.
+less than :data:`_CONVERGED_PX`. The covariance is the least-squares one (times
+:data:`_CORRELATION` for neighbouring lines sharing pixels) with the positions' variance
+propagated from the image noise where it is known: each position is linear in its samples,
+whose noise bilinear interpolation correlates (:func:`_line_noise_factor`). The residuals widen
+it only by their misfit beyond :data:`MISFIT_TOLERANCE_PX`: the model's own small misfit to a
+clean edge is the same in every image of a scene, so it biases a fit but does not scatter it
+(at 0.5-1 % noise it made the predicted sds up to twice the empirical ones). Without a noise
+estimate the residuals' variance stands for it, misfit included.
 """
 
 from __future__ import annotations
@@ -84,9 +88,38 @@ _ARC_END_LINES = 1
 _ARC_TIE_PX = 0.3
 #: Edge-position sd (pixels) of one line assumed before a partial fit's residuals measure it.
 _TIE_LINE_SD = 0.1
-#: Neighbouring lines share interpolated pixels: the residual sd, which takes them as
-#: independent, understates the fit's sd by about this factor (measured on renders).
-_CORRELATION = 1.2
+
+
+def _interpolated_noise_correlation(d: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Covariance, in units of the pixel noise variance, of two samples ``d`` pixels apart of
+    linearly interpolated white noise, averaged over the samples' sub-pixel phase (the tent
+    kernel's autocorrelation: 2/3 at 0, 1/6 at 1 px, 0 beyond 2 px). Bilinear interpolation is
+    its square; along a line the product with the other axis' zero-lag 2/3 serves every
+    direction to within 6 % (the 2-D form is nearly isotropic)."""
+    d = np.abs(d)
+    return np.where(
+        d <= 1.0, 2.0 / 3.0 - d * d + 0.5 * d**3, np.clip(2.0 - d, 0.0, None) ** 3 / 6.0
+    )
+
+
+#: Neighbouring lines, :data:`LINE_SPACING_PX` apart along the arc, share interpolated pixels:
+#: their positions' errors correlate by about R(spacing) / R(0) (1/4 at one pixel), which the
+#: least squares, taking them as independent, leave out. For parameters that move every line
+#: alike the fit's sd is then larger by sqrt(1 + 2 rho); renders agreed (1.2 measured).
+_CORRELATION = float(
+    np.sqrt(
+        1.0
+        + 2.0
+        * _interpolated_noise_correlation(np.array(1.0))
+        / _interpolated_noise_correlation(np.array(0.0))
+    )
+)
+#: Model misfit tolerated before the residuals widen the covariance, RMS pixels per line: the
+#: edge-profile model's own gap to an area-sampled, Gaussian-blurred printed edge (aliasing at
+#: 0.5 px of blur: 0.015-0.020 px on noise-free renders at 45-120 px, 0.007-0.015 at 0.7 px).
+#: It is the same in every image of a scene (a bias, not scatter); misfit beyond it (a partly
+#: covered edge, a reflection) widens the covariance by the excess.
+MISFIT_TOLERANCE_PX = 0.025
 #: Image blur (optics, pixel integration, interpolation) assumed before it is measured, pixels.
 _START_BLUR = 0.8
 #: A first pass from a coarse seed uses every this many lines.
@@ -139,6 +172,7 @@ def refine_by_profiles(
     dark_inside: NDArray[np.bool_] | bool,
     rho_range: tuple[float, float] = (0.0, np.inf),
     passes: int = 4,
+    noise_std: float | None = None,
 ) -> EdgeFits:
     """Refine ellipses from edge profiles along their normals (see the module docstring).
 
@@ -156,6 +190,10 @@ def refine_by_profiles(
     passes : int
         Largest number of sampling passes (each re-centres the lines on the previous pass'
         ellipse; a fit stops when it has converged).
+    noise_std : float, optional
+        The image's noise sd in its intensity units: the covariance is then the noise's,
+        propagated through the lines (:func:`_line_noise_factor`), widened only by misfit
+        beyond :data:`MISFIT_TOLERANCE_PX`; without it, the residuals' own scatter.
 
     Returns
     -------
@@ -171,9 +209,13 @@ def refine_by_profiles(
     seeds = checked_seeds(seeds)
     if passes < 1:
         raise DetectorError(f"passes must be at least 1, got {passes}")
+    if noise_std is not None and not (np.isfinite(noise_std) and noise_std > 0):
+        raise DetectorError(f"noise_std must be positive and finite, got {noise_std!r}")
     rho = checked_rho_range(rho_range)
     polarity = polarity_signs(dark_inside, seeds.shape[0])
-    return refine_by_profiles_f32(np.asarray(img, dtype=np.float32), seeds, polarity, rho, passes)
+    return refine_by_profiles_f32(
+        np.asarray(img, dtype=np.float32), seeds, polarity, rho, passes, noise_std=noise_std
+    )
 
 
 def refine_by_profiles_f32(
@@ -185,6 +227,7 @@ def refine_by_profiles_f32(
     spread: NDArray[np.float64] | None = None,
     *,
     partial: bool = False,
+    noise_std: float | None = None,
 ) -> EdgeFits:
     """:func:`refine_by_profiles` on a float32 image already converted (one conversion serves
     every circle of a frame); ``polarity`` is +1 where the inside is dark. ``spread``: the
@@ -192,7 +235,8 @@ def refine_by_profiles_f32(
     fit's own lines measure it. ``partial``: the edge is printed only along parts of the
     ellipse (a coding track's arcs): only lines whose step is near the largest ones' (within
     :data:`_ARC_HEIGHT_TOLERANCE`) count, so no line across a sector boundary is used, and the
-    ellipse is tied to its seed (:data:`_ARC_TIE_PX`) along what those lines leave open."""
+    ellipse is tied to its seed (:data:`_ARC_TIE_PX`) along what those lines leave open.
+    ``noise_std``: as in :func:`refine_by_profiles`."""
     n = seeds.shape[0]
     out = EdgeFits.blank(n)
     usable = np.all(np.isfinite(seeds), axis=1) & (seeds[:, 3] > 1.0)
@@ -207,7 +251,19 @@ def refine_by_profiles_f32(
         blk = order[first : first + _BLOCK]
         j = idx[blk]
         blur = None if spread is None else spread[j]
-        _fit_block(src, seeds[j], polarity[j], count[blk], rho_range, passes, blur, out, j, partial)
+        _fit_block(
+            src,
+            seeds[j],
+            polarity[j],
+            count[blk],
+            rho_range,
+            passes,
+            blur,
+            out,
+            j,
+            partial,
+            noise_std,
+        )
     drift = np.max(np.abs(out.params[:, :4] - seeds[:, :4]), axis=1)
     # A fit that wandered off its seed by more than its windows was not fitting this edge.
     out.ok[:] &= np.nan_to_num(drift, nan=np.inf) <= 2.0 * MAX_WINDOW_PX
@@ -225,6 +281,7 @@ def _fit_block(
     out: EdgeFits,
     j: NDArray[np.intp],
     partial: bool = False,
+    noise_std: float | None = None,
 ) -> None:
     """Fit one block of ellipses; results written into ``out`` at rows ``j``.
 
@@ -265,6 +322,7 @@ def _fit_block(
             cap,
             measure_blur=coarse,
             tie=seeds[rows] if partial else None,
+            noise_std=noise_std,
         )
         ok = res.ok & alive[rows]
         moved = np.max(np.abs(res.params[:, :4] - c[:, :4]), axis=1)
@@ -301,11 +359,13 @@ def _pass(
     *,
     measure_blur: bool,
     tie: NDArray[np.float64] | None = None,
+    noise_std: float | None = None,
 ) -> EdgeFits:
     """One sampling pass: lines on the current ellipses, edge positions, a least-squares step.
     Returns the stepped ellipses; ``spread`` is the blur, measured when ``measure_blur`` (wide
     windows: the narrow ones of the final passes would feed back a truncated spread). ``tie``:
-    the seeds of a partial edge (see :func:`refine_by_profiles_f32`)."""
+    the seeds of a partial edge (see :func:`refine_by_profiles_f32`). ``noise_std``: the
+    image noise the covariance is propagated from (None: the residuals')."""
     partial = tie is not None
     k = cur.shape[0]
     dtype: type[np.floating[Any]] = np.float64 if partial else np.float32
@@ -359,7 +419,18 @@ def _pass(
     # distance d_new(origin) = jac . delta = -t.
     t = np.where(good, pos + 0.5 * lines.kappa * blur2, 0.0)
     prior = None if tie is None else _tie(lines, cur, tie)
-    delta, cov_f, rms, used = _solve(lines.jac, t, good, prior)
+    noise_var = None
+    if noise_std is not None:
+        # Each line's edge is linear in its samples (the centroid, then the window's fixed
+        # shift and gain): its variance from the image noise, per fit at its lines' typical
+        # sample spacing and centroid, over each line's own mass and gain.
+        step = lines.step
+        with np.errstate(invalid="ignore", divide="ignore"):
+            per_line = (step / (mass * gain)) ** 2
+            c1 = (mean - lower) / step
+        factor = _line_noise_factor(_mean(step, good), _mean(c1, good))
+        noise_var = noise_std * noise_std * factor * _mean(per_line, good)
+    delta, cov_f, rms, used = _solve(lines.jac, t, good, prior, noise_var)
     ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
     theta = np.zeros((k, 5))
     theta[:, 2:] = quadratic_form(cur[:, 2:5])
@@ -561,6 +632,36 @@ def _moment_weights() -> NDArray[np.float32]:
 _MOMENT_WEIGHTS = np.ascontiguousarray(_moment_weights())
 
 
+def _lag_moments() -> NDArray[np.float64]:
+    """``(SAMPLES, 3, 3)``: for each lag L, the sum over samples i of the moment weights' outer
+    products ``w_i w_(i+L)^T``, plus its transpose for L > 0 (both orders of a pair)."""
+    w = _MOMENT_WEIGHTS.astype(np.float64)
+    out = np.zeros((SAMPLES, 3, 3))
+    for lag in range(SAMPLES):
+        m = w[: SAMPLES - lag].T @ w[lag:]
+        out[lag] = m if lag == 0 else m + m.T
+    return out
+
+
+_LAG_MOMENTS = _lag_moments()
+
+
+def _line_noise_factor(step: NDArray[np.float64], c1: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Variance of a line's centroid, in sample steps, times its squared mass, per unit pixel
+    noise variance: lines of sample spacing ``step`` whose centroid lies ``c1`` steps into the
+    window.
+
+    The centroid c1 = S1 / S0 of the forward differences moves with the samples p_i by
+    ``(w1_i - c1 w0_i) / S0`` (the moment weights of :func:`_moment_weights`); bilinear
+    interpolation makes the samples' noise correlated, ``R(|i - i'| step)`` in units of the
+    pixel variance (:func:`_interpolated_noise_correlation`, times 2/3 for the other axis).
+    """
+    lags = np.arange(SAMPLES, dtype=np.float64)
+    rho = (2.0 / 3.0) * _interpolated_noise_correlation(lags[None, :] * step[:, None])
+    m = np.einsum("kl,lij->kij", rho, _LAG_MOMENTS)
+    return np.asarray(m[:, 1, 1] - 2.0 * c1 * m[:, 0, 1] + c1 * c1 * m[:, 0, 0])
+
+
 def _inside_runs(good: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """The lines of a partial edge more than :data:`_ARC_END_LINES` from either end of their
     run of good lines: near a sector's end the blurred corner bends the edge."""
@@ -583,11 +684,11 @@ def _upper_decile(values: NDArray[np.float64], good: NDArray[np.bool_]) -> NDArr
     return np.asarray(np.where(n > 0, top, np.nan), dtype=np.float64)
 
 
-def _mean(values: NDArray[np.float64], good: NDArray[np.bool_]) -> NDArray[np.float64]:
+def _mean(values: NDArray[np.floating[Any]], good: NDArray[np.bool_]) -> NDArray[np.float64]:
     """Mean of ``values`` over the good lines of each fit (NaN where none)."""
     n = good.sum(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(good, values, 0.0).sum(axis=1) / n
+        return np.asarray(np.where(good, values, 0.0).sum(axis=1) / n, dtype=np.float64)
 
 
 def _tie(
@@ -611,12 +712,16 @@ def _solve(
     t: NDArray[np.floating[Any]],
     good: NDArray[np.bool_],
     prior: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+    noise_var: NDArray[np.float64] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
     """Least squares ``jac . delta = -t`` per fit over the good lines, then once more without
     the lines beyond :data:`_OUTLIER_SDS` robust sds: the step, its covariance (the positions'
     variance from the residuals), the RMS residual and the lines used. ``prior``: information
     ``Q`` and current offsets ``o`` from the seeds (:func:`_tie`); the step then also pays
-    ``(o + delta)^T Q (o + delta)``, and the covariance is still the lines' alone."""
+    ``(o + delta)^T Q (o + delta)``, and the covariance is still the lines' alone.
+    ``noise_var``: each fit's line variance from the image noise; the covariance then takes it,
+    or the residuals' variance less the tolerated misfit (:data:`MISFIT_TOLERANCE_PX`) where
+    that is larger. The returned RMS residual is the residuals' either way."""
     k = jac.shape[0]
     # Sums in double precision from the lines' single-precision terms.
     jac = jac.astype(np.float64, copy=False)
@@ -669,5 +774,8 @@ def _solve(
     cov = np.full((k, 5, 5), np.nan)
     if np.any(solvable):
         inv = per_matrix(np.linalg.inv, (int(solvable.sum()), 5, 5), normal[solvable])
-        cov[solvable] = inv * ((_CORRELATION * sd[solvable]) ** 2)[:, None, None]
+        var = sd[solvable] ** 2
+        if noise_var is not None:
+            var = np.fmax(noise_var[solvable], var - MISFIT_TOLERANCE_PX**2)
+        cov[solvable] = inv * (_CORRELATION**2 * var)[:, None, None]
     return delta, cov, sd, used.astype(np.intp)
