@@ -115,11 +115,12 @@ _CORRELATION = float(
     )
 )
 #: Model misfit tolerated before the residuals widen the covariance, RMS pixels per line: the
-#: edge-profile model's own gap to an area-sampled, Gaussian-blurred printed edge (aliasing at
-#: 0.5 px of blur: 0.015-0.020 px on noise-free renders at 45-120 px, 0.007-0.015 at 0.7 px).
+#: edge-profile model's typical gap to an area-sampled, Gaussian-blurred printed edge (aliasing
+#: at 0.5 px of blur: 0.015-0.020 px on noise-free renders at 45-120 px, 0.007-0.015 at 0.7 px).
 #: It is the same in every image of a scene (a bias, not scatter); misfit beyond it (a partly
-#: covered edge, a reflection) widens the covariance by the excess.
-MISFIT_TOLERANCE_PX = 0.025
+#: covered edge, a reflection, compression artefacts, which do scatter) widens the covariance by
+#: the excess. Typical rather than largest, as for :data:`.edge_fit.MISFIT_TOLERANCE`.
+MISFIT_TOLERANCE_PX = 0.015
 #: Image blur (optics, pixel integration, interpolation) assumed before it is measured, pixels.
 _START_BLUR = 0.8
 #: A first pass from a coarse seed uses every this many lines.
