@@ -421,16 +421,19 @@ def _pass(
     t = np.where(good, pos + 0.5 * lines.kappa * blur2, 0.0)
     prior = None if tie is None else _tie(lines, cur, tie)
     noise_var = None
-    if noise_std is not None:
+    if noise_std is not None and not measure_blur:
         # Each line's edge is linear in its samples (the centroid, then the window's fixed
-        # shift and gain): its variance from the image noise, per fit at its lines' typical
-        # sample spacing and centroid, over each line's own mass and gain.
-        step = lines.step
+        # shift and gain): its variance from the image noise, per fit, at the symmetric window
+        # most of its lines have (their spacing, gain and mass: the typical step height times
+        # the window's share of it) with the centroid in the middle, where a converged fit's
+        # edge lies. (The coarse pass's covariance is not used.)
+        step0 = 2.0 * cap / (SAMPLES - 1)
+        half = cap / np.sqrt(blur * blur + step0 * step0 / 12.0)
+        share, _, gain0 = _truncated_normal(-half, half)
         with np.errstate(invalid="ignore", divide="ignore"):
-            per_line = (step / (mass * gain)) ** 2
-            c1 = (mean - lower) / step
-        factor = _line_noise_factor(_mean(step, good), _mean(c1, good))
-        noise_var = noise_std * noise_std * factor * _mean(per_line, good)
+            spread = step0 / (typical * share * gain0)
+        middle = np.full(k, 0.5 * (SAMPLES - 1))
+        noise_var = noise_std * noise_std * _line_noise_factor(step0, middle) * spread**2
     delta, cov_f, rms, used = _solve(lines.jac, t, good, prior, noise_var)
     ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
     theta = np.zeros((k, 5))
