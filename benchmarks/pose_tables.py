@@ -334,6 +334,17 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if all(verdicts) else 1
 
 
+def exact_within(n_images: int, tolerance: float) -> float:
+    """Probability that ``sigma / s`` lies within ``1 +- tolerance`` when ``s`` is the sample sd
+    of ``n_images`` normal draws of sd ``sigma``: the best a predicted sd can score against an
+    empirical one."""
+    from scipy.stats import chi2
+
+    dof = n_images - 1
+    lo, hi = 1.0 / (1.0 + tolerance), 1.0 / max(1.0 - tolerance, 1e-12)
+    return float(chi2.cdf(dof * hi * hi, dof) - chi2.cdf(dof * lo * lo, dof))
+
+
 def _fmt(x: float) -> str:
     if not np.isfinite(x):
         return "   -   "
@@ -412,6 +423,13 @@ def report(
                 f"{size:4d} | {det:5d}/{tot:<5d} {wrong:4d} | "
                 f"{np.median(ratios):6.2f} {ratios.min():6.2f} {ratios.max():6.2f}   "
                 f"{100 * inside:5.1f} %"
+            )
+        n_images = max((s.n_images for s in cases.values()), default=0)
+        if n_images > 2:
+            print(
+                f"(a prediction exact in expectation is within +-30 % of the sd of {n_images} "
+                f"images in {100 * exact_within(n_images, 0.3):.1f} % of cases: the sd's own "
+                "scatter)"
             )
         bias = [
             (abs(cases[(design, size, b, n, s)].bias()), size, b, n, s)
