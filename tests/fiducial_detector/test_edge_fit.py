@@ -64,45 +64,32 @@ def test_mean_is_unbiased_where_the_gradient_fit_shrinks() -> None:
     assert np.mean(dc) < -0.03
 
 
-def test_covariance_predicts_the_scatter() -> None:
-    """Predicted standard deviations of (u, v, a, b) within 35 % of the empirical ones."""
-    errs, preds = [], []
-    for rep in range(24):
-        scene = render_one("ring", 60, 35, 0.7, 0.02, 200 + rep)
-        truth = true_ellipse(scene, 0)
-        seed = coarse_seed(truth, np.random.default_rng(50 + rep))
-        fit = refine_ellipses(
-            scene.image, seed[None], dark_inside=True, noise_std=0.02 * 255, rho_range=(0.9, 1.15)
-        )
-        assert fit.ok[0]
-        errs.append(fit.params[0, :4] - truth[:4])
-        preds.append(np.sqrt(np.diag(fit.covariance[0])[:4]))
-    ratio = np.std(errs, axis=0, ddof=1) / np.mean(preds, axis=0)
-    assert np.all((ratio > 0.65) & (ratio < 1.35)), ratio
-    # Unbiased: every mean error within three standard errors.
-    sem = np.std(errs, axis=0, ddof=1) / np.sqrt(len(errs))
-    assert np.all(np.abs(np.mean(errs, axis=0)) < 3.0 * sem + 0.003)
-
-
-def test_misfit_of_a_clean_edge_does_not_widen_the_covariance() -> None:
-    """At 0.5 % noise the model's residuals are about twice the noise (its small misfit to an
-    area-sampled edge at blur 0.5 px, the same in every image): predicted sds of (u, v, a, b)
-    still within 35 % of the empirical ones, not twice them."""
+@pytest.mark.parametrize(
+    ("blur", "noise", "reps", "seed0"), [(0.7, 0.02, 24, 200), (0.5, 0.005, 30, 300)]
+)
+def test_covariance_predicts_the_scatter(blur: float, noise: float, reps: int, seed0: int) -> None:
+    """Predicted standard deviations of (u, v, a, b) within 35 % of the empirical ones, the mean
+    errors within three standard errors. At 0.5 % noise and blur 0.5 px the residuals are about
+    twice the noise (the model's small misfit to an area-sampled edge, the same in every image),
+    which does not widen the covariance to twice the scatter."""
     errs, preds, chi = [], [], []
-    for rep in range(30):
-        scene = render_one("ring", 60, 35, 0.5, 0.005, 300 + rep)
+    for rep in range(reps):
+        scene = render_one("ring", 60, 35, blur, noise, seed0 + rep)
         truth = true_ellipse(scene, 0)
-        seed = coarse_seed(truth, np.random.default_rng(350 + rep))
+        seed = coarse_seed(truth, np.random.default_rng(seed0 - 150 + rep))
         fit = refine_ellipses(
-            scene.image, seed[None], dark_inside=True, noise_std=0.005 * 255, rho_range=(0.9, 1.15)
+            scene.image, seed[None], dark_inside=True, noise_std=noise * 255, rho_range=(0.9, 1.15)
         )
         assert fit.ok[0]
         errs.append(fit.params[0, :4] - truth[:4])
         preds.append(np.sqrt(np.diag(fit.covariance[0])[:4]))
         chi.append(fit.chi[0])
-    assert np.median(chi) > 1.3  # the misfit is there
+    if noise < 0.01:
+        assert np.median(chi) > 1.3  # the misfit is there
     ratio = np.std(errs, axis=0, ddof=1) / np.mean(preds, axis=0)
     assert np.all((ratio > 0.65) & (ratio < 1.35)), ratio
+    sem = np.std(errs, axis=0, ddof=1) / np.sqrt(len(errs))
+    assert np.all(np.abs(np.mean(errs, axis=0)) < 3.0 * sem + 0.003)
 
 
 def test_annulus_model_fits_both_edges_of_an_oblique_ring() -> None:
