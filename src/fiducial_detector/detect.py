@@ -665,7 +665,7 @@ def fit_arcs(
             design.half_way(r),
             passes=ARC_PASSES,
             partial=True,
-            noise_std=None if noise_std is None else _usable_noise(noise_std),
+            noise_std=_usable_noise(noise_std),
         )
         res.params[:, 0] += u0
         res.params[:, 1] += v0
@@ -818,9 +818,9 @@ def _profile_circle(
     )
 
 
-def _usable_noise(noise: float) -> float | None:
+def _usable_noise(noise: float | None) -> float | None:
     """The image noise sd where it can scale a covariance (None: the fits' residuals must)."""
-    return float(noise) if np.isfinite(noise) and noise > 0 else None
+    return float(noise) if noise is not None and np.isfinite(noise) and noise > 0 else None
 
 
 def _with_fallback(

@@ -93,9 +93,9 @@ _TIE_LINE_SD = 0.1
 def _interpolated_noise_correlation(d: NDArray[np.float64]) -> NDArray[np.float64]:
     """Covariance, in units of the pixel noise variance, of two samples ``d`` pixels apart of
     linearly interpolated white noise, averaged over the samples' sub-pixel phase (the tent
-    kernel's autocorrelation: 2/3 at 0, 1/6 at 1 px, 0 beyond 2 px). Bilinear interpolation is
-    its square; along a line the product with the other axis' zero-lag 2/3 serves every
-    direction to within 6 % (the 2-D form is nearly isotropic)."""
+    kernel's autocorrelation: 2/3 at 0, 1/6 at 1 px, 0 beyond 2 px). Bilinear interpolation's
+    is the product of both axes' (separable); along a line, this times the other axis' 2/3 at
+    zero lag serves every direction to within 6 % (the 2-D form is nearly isotropic)."""
     d = np.abs(d)
     return np.where(
         d <= 1.0, 2.0 / 3.0 - d * d + 0.5 * d**3, np.clip(2.0 - d, 0.0, None) ** 3 / 6.0
