@@ -463,6 +463,11 @@ def estimate_arrays(
     )
     cov_best = 0.5 * (cov_c + np.swapaxes(cov_c, 0, 1))  # (3, 3, N)
     c = centers.copy()
+    # The other candidate moves as the refinement moved the better one: the closed form rests
+    # on the pose circle alone, and where larger circles carry the depth (a ``dot`` fiducial's
+    # arcs, 3.3 times its dot) its depth error would otherwise enter the mixture as spread
+    # between the candidates, which only their branch should make.
+    c[:, 1 - best, idx] += c_best - centers[:, best, idx]
     c[:, best, idx] = c_best
     # The refined candidate's covariance stands for both.
     mean, mix = candidate_mixture(w0, c[:, 0], c[:, 1], cov_best)  # (3, N), (3, 3, N)
