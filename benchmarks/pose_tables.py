@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from armourcam.render import BACKGROUND, Target, defocus, render, rotation_from_slant_tilt
 from fiducial_detector.detect import SUBPIXEL_METHODS, detect
@@ -338,8 +339,6 @@ def exact_within(n_images: int, tolerance: float) -> float:
     """Probability that ``sigma / s`` lies within ``1 +- tolerance`` when ``s`` is the sample sd
     of ``n_images`` normal draws of sd ``sigma``: the best a predicted sd can score against an
     empirical one."""
-    from scipy.stats import chi2
-
     dof = n_images - 1
     lo, hi = 1.0 / (1.0 + tolerance), 1.0 / max(1.0 - tolerance, 1e-12)
     return float(chi2.cdf(dof * hi * hi, dof) - chi2.cdf(dof * lo * lo, dof))

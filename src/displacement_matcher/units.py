@@ -719,7 +719,7 @@ def unit_motions(
     taken: set[int] = set()
     # Faces still seen in place, for both unit-level rules below (found once).
     shown: dict[int, int] = {}
-    if owner_codes is None and template is not None:
+    if owner_codes is None and template is not None and (normals or template.positions_mm):
         shown = still_in_place(base, cur) if in_place is None else in_place
     if owner_codes is None and normals:
         # Faces opposite to those a unit showed first: they can only be an overturned unit's.
@@ -896,9 +896,9 @@ def _overturn_evidence(
     rows = [d for d in appeared if d.code_after is not None and int(d.code_after) in normals]
     if not rows:
         return []
+    lone_cross = {j for n, js in cur_of.items() if n not in has_same and len(js) == 1 for j in js}
     # A unit still showing an old face where it was (``shown``, :func:`still_in_place`) did not
     # turn over, whatever that face was matched to.
-    lone_cross = {j for n, js in cur_of.items() if n not in has_same and len(js) == 1 for j in js}
     cols = [
         n
         for n, (_, ix) in enumerate(unit_list)

@@ -383,7 +383,8 @@ def _pass(
         # a step centred in the window that the window holds) near the largest ones'. (Lines
         # off the image or without a step give NaN, never near.)
         with np.errstate(invalid="ignore", divide="ignore"):
-            step = mass / np.maximum(_window_terms(lower, upper, sg, blur, cap)[0], 1e-6)
+            window = _window_terms(lower, upper, sg, _symmetric_window(cap, blur), cap)
+            step = mass / np.maximum(window[0], 1e-6)
         top = _upper_decile(step, good)
         good &= np.abs(step - top[:, None]) <= _ARC_STEP_TOLERANCE * top[:, None]
         # Lines across white sectors have no centroid (nor any use below).
@@ -402,7 +403,8 @@ def _pass(
     # first order in its offset c from the line's origin the centroid is sg T + c V, with T, V
     # the truncated standard normal's mean and variance (the origin lies within a few
     # hundredths of the edge once a fit has converged).
-    z, shift, gain = _window_terms(lower, upper, sg, blur, cap)
+    symmetric = _symmetric_window(cap, blur)
+    z, shift, gain = _window_terms(lower, upper, sg, symmetric, cap)
     pos = (mean - sg * shift) / gain
     good &= (pos - lower >= _MIN_WINDOW_SPREADS * sg) & (upper - pos >= _MIN_WINDOW_SPREADS * sg)
     # Where the ellipse bends within the blur the curvature correction below fails.
@@ -428,12 +430,10 @@ def _pass(
         # the window's share of it) with the centroid in the middle, where a converged fit's
         # edge lies. (The coarse pass's covariance is not used.)
         step0 = 2.0 * cap / (SAMPLES - 1)
-        half = cap / np.sqrt(blur * blur + step0 * step0 / 12.0)
-        share, _, gain0 = _truncated_normal(-half, half)
+        share, gain0 = symmetric
         with np.errstate(invalid="ignore", divide="ignore"):
             spread = step0 / (typical * share * gain0)
-        middle = np.full(k, 0.5 * (SAMPLES - 1))
-        noise_var = noise_std * noise_std * _line_noise_factor(step0, middle) * spread**2
+        noise_var = noise_std * noise_std * _line_noise_factor(step0) * spread**2
     delta, cov_f, rms, used = _solve(lines.jac, t, good, prior, noise_var)
     ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
     theta = np.zeros((k, 5))
@@ -447,18 +447,28 @@ def _pass(
     return EdgeFits(new, cov, pol * typical, blur, rms, used, ok)
 
 
+def _symmetric_window(
+    cap: NDArray[np.float64], blur: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Mass and variance of the truncated standard normal over each fit's symmetric window
+    ``+-cap`` (its samples' spacing in the spread), the window most of its lines have."""
+    box = (2.0 * cap / (SAMPLES - 1)) ** 2 / 12.0
+    half = cap / np.sqrt(blur * blur + box)
+    z0, _, v0 = _truncated_normal(-half, half)
+    return z0, v0
+
+
 def _window_terms(
     lower: NDArray[np.floating[Any]],
     upper: NDArray[np.floating[Any]],
     sg: NDArray[np.floating[Any]],
-    blur: NDArray[np.float64],
+    symmetric: tuple[NDArray[np.float64], NDArray[np.float64]],
     cap: NDArray[np.float64],
 ) -> tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]]]:
     """:func:`_truncated_normal` of every line's window in spreads ``sg``. Most windows are their
-    fit's symmetric cap: one evaluation per fit; the lines cut shorter are evaluated apiece."""
-    box = (2.0 * cap / (SAMPLES - 1)) ** 2 / 12.0
-    half = cap / np.sqrt(blur * blur + box)
-    z0, _, v0 = _truncated_normal(-half, half)
+    fit's symmetric cap (``symmetric``: :func:`_symmetric_window`, one evaluation per fit); the
+    lines cut shorter are evaluated apiece."""
+    z0, v0 = symmetric
     shape = lower.shape
     dtype = lower.dtype
     z = np.repeat(z0.astype(dtype)[:, None], shape[1], axis=1)
@@ -650,10 +660,10 @@ def _lag_moments() -> NDArray[np.float64]:
 _LAG_MOMENTS = _lag_moments()
 
 
-def _line_noise_factor(step: NDArray[np.float64], c1: NDArray[np.float64]) -> NDArray[np.float64]:
+def _line_noise_factor(step: NDArray[np.float64]) -> NDArray[np.float64]:
     """Variance of a line's centroid, in sample steps, times its squared mass, per unit pixel
-    noise variance: lines of sample spacing ``step`` whose centroid lies ``c1`` steps into the
-    window.
+    noise variance: lines of sample spacing ``step`` whose centroid lies in the middle of the
+    window (where a converged fit's edge lies), c1 = (SAMPLES - 1) / 2 steps in.
 
     The centroid c1 = S1 / S0 of the forward differences moves with the samples p_i by
     ``(w1_i - c1 w0_i) / S0`` (the moment weights of :func:`_moment_weights`); bilinear
@@ -663,6 +673,7 @@ def _line_noise_factor(step: NDArray[np.float64], c1: NDArray[np.float64]) -> ND
     lags = np.arange(SAMPLES, dtype=np.float64)
     rho = (2.0 / 3.0) * _interpolated_noise_correlation(lags[None, :] * step[:, None])
     m = np.einsum("kl,lij->kij", rho, _LAG_MOMENTS)
+    c1 = 0.5 * (SAMPLES - 1)
     return np.asarray(m[:, 1, 1] - 2.0 * c1 * m[:, 0, 1] + c1 * c1 * m[:, 0, 0])
 
 
@@ -688,11 +699,11 @@ def _upper_decile(values: NDArray[np.float64], good: NDArray[np.bool_]) -> NDArr
     return np.asarray(np.where(n > 0, top, np.nan), dtype=np.float64)
 
 
-def _mean(values: NDArray[np.floating[Any]], good: NDArray[np.bool_]) -> NDArray[np.float64]:
+def _mean(values: NDArray[np.float64], good: NDArray[np.bool_]) -> NDArray[np.float64]:
     """Mean of ``values`` over the good lines of each fit (NaN where none)."""
     n = good.sum(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.asarray(np.where(good, values, 0.0).sum(axis=1) / n, dtype=np.float64)
+        return np.where(good, values, 0.0).sum(axis=1) / n
 
 
 def _tie(
