@@ -20,6 +20,7 @@ BENCHMARKS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "detector_precision": (("--quick",), ()),
     "detector_recall": (("--quick",), ()),
     "pose_tables": (("--quick",), ("--jobs", "2")),
+    "pose_bound_odds": (("--sizes", "35"), ("--jobs", "2")),
     "pose_table3": (("--images", "3"), ()),
     "pose_speed": ((), ()),
     "matcher_scale": (("--repeat", "1"), ()),
