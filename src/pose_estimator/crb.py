@@ -4,13 +4,13 @@ For an image ``I(theta)`` observed with additive white Gaussian noise of standar
 ``sigma`` (fraction of full range, the paper's noise model), the Fisher information is
 ``F = J^T J / sigma^2`` with ``J = dI/dtheta`` over all pixels. ``J`` is obtained by central
 finite differences of noise-free renders (the one renderer, :mod:`armourcam.render`, with heavy
-supersampling so that edge motion is resolved smoothly). Two bounds on ``std(z)``:
+supersampling so that edge motion is resolved smoothly). Three bounds on ``std(z)``:
 
 ``z only``
     ``sigma / sqrt(sum((dI/dz)^2))``: every other pose parameter known (the loosest bound).
 ``pose``
-    ``sqrt((F^-1)_zz)`` with x, y, z and the two out-of-plane rotations unknown (what any pose
-    estimator faces).
+    ``sqrt((F^-1)_zz)`` with x, y, z and the two out-of-plane rotations unknown, blur and levels
+    known, every pixel of the synthetic image counted.
 ``print_only``
     As ``pose``, but from the printed pattern alone, and with the blur and the black and white
     levels unknown too: the paper around the print is rendered white to the image's edge. In
