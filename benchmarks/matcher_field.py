@@ -156,6 +156,20 @@ def icp(
     return pairs
 
 
+def _true_unit(field: Field, owners: NDArray[np.intp], current: NDArray[np.intp]) -> int:
+    """The true unit a reported unit stands for: the majority owner of its baseline fiducials
+    (``owners``); where two owners tie (a neighbour's fiducial grouped in), the one that also
+    owns most of its current fiducials (``current``, truth ids, -1 for spurious ones), since
+    the unit's reported motion is measured there; else the lowest id."""
+    counts = np.bincount(owners)
+    tied = np.flatnonzero(counts == counts.max())
+    if len(tied) > 1:
+        now = field.after.unit[current[current >= 0]]
+        votes = [int(np.sum(now == t)) for t in tied]
+        return int(tied[int(np.argmax(votes))])
+    return int(tied[0])
+
+
 def evaluate(
     field: Field,
     base: Sequence[FiducialPose],
@@ -208,7 +222,8 @@ def evaluate(
                 near_total += 1
                 near_right += ok
 
-    # Units against the truth (a reported unit is its baseline fiducials' majority true unit).
+    # Units against the truth (a reported unit is its baseline fiducials' majority true unit,
+    # ties broken by its current fiducials: :func:`_true_unit`).
     true_disp: set[int] = set()
     reported: set[int] = set()
     still_disp = 0
@@ -220,7 +235,7 @@ def evaluate(
         owners = field.before.unit[ids[ids >= 0]]
         if len(owners) == 0:
             continue
-        tu = int(np.bincount(owners).argmax())
+        tu = _true_unit(field, owners, cid[list(u.current_indices)])
         pure = bool(np.all(owners == tu)) and len(owners) == len(ids)
         is_disp = u.unit in summary.displaced_ids
         if is_disp:
