@@ -19,7 +19,7 @@ Per cell (design, blur, noise, size):
   out-of-plane rotation, blur and levels unknown (:mod:`pose_estimator.crb`, ``print_only``:
   the edge of the paper disc around the print, which a real scene's hand-cut paper and unknown
   surroundings make useless, left out), maximum over slants {0, 20, 40, 60, 69} deg; the
-  summary line also gives the looser 5-parameter bound that counts the paper's edge;
+  summary line also gives the lower 5-parameter bound that counts the paper's edge;
 - covariance honesty: predicted std(z) (from the propagated ellipse covariances) over the
   empirical std, per slant < 70 deg.
 

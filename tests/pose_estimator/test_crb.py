@@ -37,9 +37,9 @@ def test_bound_orders_and_scaling() -> None:
     assert p_big < 0.6 * p0
 
 
-def test_print_alone_bound_is_looser() -> None:
+def test_print_alone_bound_is_higher() -> None:
     """Without the paper disc's edge (on a uniform background it carries depth; on a real unit
-    it does not) and with blur and levels unknown, the bound is looser, by 5-30 %."""
+    it does not) and with blur and levels unknown, less is known: the bound is 5-30 % higher."""
     for slant in (0.0, 60.0):
         b = _bounds(45.0, slant)
         assert 1.05 * b.pose < b.print_only < 1.3 * b.pose
