@@ -49,7 +49,7 @@ from armourcam.render import BACKGROUND, Target, defocus, render, rotation_from_
 from fiducial_detector.detect import SUBPIXEL_METHODS, detect
 from fiducial_detector.types import FiducialDetection
 from pose_estimator.camera import CameraModel
-from pose_estimator.crb import depth_bound
+from pose_estimator.crb import DepthBound, depth_bound
 from pose_estimator.estimate import detections_to_arrays, estimate_arrays
 from pose_estimator.image_fit import refine_from_image
 from pose_estimator.types import FiducialPose
@@ -203,19 +203,21 @@ def run_slant(
     return cases, seconds
 
 
+def protocol_bound(design: str, size_px: int, slant_deg: float, blur: float) -> DepthBound:
+    """The Cramér-Rao bounds of z (unit noise) of one case of the protocol, in its tile."""
+    z = F_PX * DIAMETER_MM / size_px
+    rot = rotation_from_slant_tilt(np.radians(slant_deg))
+    target = Target(CODE, design, DIAMETER_MM, rot, np.array([0.0, 0.0, z]))
+    return depth_bound(tile_camera(size_px), target, blur_sigma=blur, supersample=16)
+
+
 def run_crb(task: tuple[str, int]) -> dict[tuple[str, int, float], tuple[float, float]]:
     """The Cramér-Rao bounds of z for one (design, size), each the worst over
     :data:`CRB_SLANTS`: (print only, 5-parameter with the paper's edge)."""
     design, size = task
-    cam = tile_camera(size)
-    z = F_PX * DIAMETER_MM / size
     crb = {}
     for blur in (0.5, 0.7):
-        bounds = []
-        for slant in CRB_SLANTS:
-            rot = rotation_from_slant_tilt(np.radians(slant))
-            t = Target(CODE, design, DIAMETER_MM, rot, np.array([0.0, 0.0, z]))
-            bounds.append(depth_bound(cam, t, blur_sigma=blur, supersample=16))
+        bounds = [protocol_bound(design, size, slant, blur) for slant in CRB_SLANTS]
         crb[(design, size, blur)] = (
             max(b.print_only for b in bounds),
             max(b.pose for b in bounds),
@@ -386,7 +388,7 @@ def report(
             print(head)
             worst = 0.0
             at_bound = 0.0  # the ratio an unbiased estimator at the CRB would score
-            at_loose = 0.0  # the same at the 5-parameter bound that counts the paper's edge
+            at_edge = 0.0  # the same at the 5-parameter bound that counts the paper's edge
             for blur, noise in DEGRADATIONS:
                 cells = []
                 for size in sizes:
@@ -395,12 +397,14 @@ def report(
                     ours = float(np.nanmax(vals)) if np.any(np.isfinite(vals)) else np.nan
                     missing = sum(s.n_images - s.detected for s in sts)
                     ref = paper.get((table, blur, noise, size), np.nan)
-                    bound, loose = np.array(crb.get((design, size, blur), (np.nan,) * 2)) * noise
+                    bound, with_edge = (
+                        np.array(crb.get((design, size, blur), (np.nan,) * 2)) * noise
+                    )
                     ratio = ours / ref
                     worst = max(worst, ratio if np.isfinite(ratio) else np.inf)
                     if np.isfinite(bound / ref):
                         at_bound = max(at_bound, bound / ref)
-                        at_loose = max(at_loose, loose / ref)
+                        at_edge = max(at_edge, with_edge / ref)
                     flag = "*" if missing else " "
                     cells.append(
                         f"{_fmt(ours)}{flag}{_fmt(ref)} {ratio:5.3f} {_fmt(bound)} "
@@ -415,7 +419,7 @@ def report(
                 # this is a floor the table's ratio cannot beat in expectation.
                 print(
                     f"   worst CRB/paper = {at_bound:.3f} (an unbiased estimator at the bound "
-                    f"of the print alone); {at_loose:.3f} at the 5-parameter bound that also "
+                    f"of the print alone); {at_edge:.3f} at the 5-parameter bound that also "
                     "counts the paper's edge and takes blur and levels as known"
                 )
         # Recall and covariance honesty over the table's slants.

@@ -144,12 +144,14 @@ def _information(
         minus = replace(target, rotation=rm @ target.rotation)
         cols.append((image(plus) - image(minus)).ravel() / (2.0 * drot))
     if nuisance:
+        # One render of the print serves the blur's column and the levels'.
+        sharp = image(target, 0.0)
         if blur_sigma > 0:
             h = min(0.05, 0.5 * blur_sigma)
-            diff = image(target, blur_sigma + h) - image(target, blur_sigma - h)
+            diff = defocus(sharp, blur_sigma + h) - defocus(sharp, blur_sigma - h)
             cols.append(diff.ravel() / (2.0 * h))
         # The levels enter linearly: a constant and the image itself span them.
         cols.append(np.ones(cols[0].size))
-        cols.append(image(target).ravel())
+        cols.append((defocus(sharp, blur_sigma) if blur_sigma > 0 else sharp).ravel())
     J = np.stack(cols, axis=1)
     return J.T @ J
