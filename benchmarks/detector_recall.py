@@ -77,9 +77,11 @@ def degrade(
     return np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
 
 
-def score(image: NDArray[np.uint8], truth: TargetTruth, size: float) -> tuple[bool, int]:
+def score(
+    image: NDArray[np.uint8], truth: TargetTruth, size: float, decimate: int = 1
+) -> tuple[bool, int]:
     """(found with the right code, number of wrong detections) for one image."""
-    found = detect(image)
+    found = detect(image, decimate=decimate)
     tol = max(2.0, 0.1 * size)
     good = [
         d
@@ -97,7 +99,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bases", type=int, default=None, help="base images per cell")
     parser.add_argument("--noises", type=int, default=None, help="noise draws per degradation")
     parser.add_argument("--seed", type=int, default=2)
+    parser.add_argument(
+        "--sizes", default=",".join(map(str, SIZES)), help="comma-separated sizes, px"
+    )
+    parser.add_argument(
+        "--decimate", type=int, default=1, help="detect()'s candidate-search reduction factor"
+    )
     args = parser.parse_args(argv)
+    sizes = tuple(int(s) for s in args.sizes.split(","))
     cv2.setNumThreads(1)
     slants = (0.0, 30.0, 50.0, 60.0, 70.0, 80.0) if args.quick else SLANTS
     bases = args.bases or (3 if args.quick else 6)
@@ -107,26 +116,32 @@ def main(argv: list[str] | None = None) -> int:
     hits: dict[tuple[str, int, float, int], list[int]] = defaultdict(lambda: [0, 0, 0])
     t0 = time.perf_counter()
     for design in DESIGNS:
-        for size in SIZES:
+        for size in sizes:
             for slant in slants:
                 for _ in range(bases):
                     base = render_base(design, size, slant, rng)
                     for k, (blur, noise) in enumerate(DEGRADATIONS):
                         for _ in range(noises):
                             ok, wrong = score(
-                                degrade(base.image, blur, noise, rng), base.truth, size
+                                degrade(base.image, blur, noise, rng),
+                                base.truth,
+                                size,
+                                args.decimate,
                             )
                             cell = hits[design, size, slant, k]
                             cell[0] += ok
                             cell[1] += 1
                             cell[2] += wrong
     elapsed = time.perf_counter() - t0
-    print(f"detector recall: {bases} bases x {noises} noise draws per cell, {elapsed:.0f} s")
+    print(
+        f"detector recall: {bases} bases x {noises} noise draws per cell, "
+        f"decimate {args.decimate}, {elapsed:.0f} s"
+    )
     print("recall % per slant (all four degradations pooled); W = wrong codes in the row")
     for design in DESIGNS:
         print(f"\ndesign {design}")
         print("size  " + " ".join(f"{s:>5.0f}" for s in slants) + "      W")
-        for size in SIZES:
+        for size in sizes:
             cells = [
                 [sum(hits[design, size, s, k][j] for k in range(4)) for j in range(3)]
                 for s in slants
@@ -141,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     print("design size  slant    blur noise  recall %  wrong  target")
     failures = 0
     for design in DESIGNS:
-        for size in SIZES:
+        for size in sizes:
             limit, need = (60.0, 95.0) if size == 25 else (70.0, 99.5)
             for k, (blur, noise) in enumerate(DEGRADATIONS):
                 found = trials = wrong = 0

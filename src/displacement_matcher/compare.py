@@ -56,9 +56,11 @@ def poses_from_images(
     design: str = "any",
     subpixel: str = "profile",
     image_fit: bool = False,
+    decimate: int = 1,
 ) -> list[FiducialPose]:
     """Detect, estimate (refined by :func:`pose_estimator.image_fit.refine_from_image` when
-    ``image_fit``) and, for several images of one static state, fuse fiducial poses.
+    ``image_fit``) and, for several images of one static state, fuse fiducial poses
+    (``design``, ``subpixel``, ``decimate``: :func:`fiducial_detector.detect`'s).
 
     Raises
     ------
@@ -75,7 +77,12 @@ def poses_from_images(
     for image in images:
         h, w = image.shape[:2]
         camera.check_image_size(w, h)
-        found = detect(image, design=design, subpixel=subpixel)  # type: ignore[arg-type]
+        found = detect(
+            image,
+            design=design,  # type: ignore[arg-type]
+            subpixel=subpixel,  # type: ignore[arg-type]
+            decimate=decimate,
+        )
         poses = estimate(found, camera, diameter_mm)
         if image_fit:
             poses = refine_from_image(image, poses, camera, diameter_mm)

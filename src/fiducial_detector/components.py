@@ -60,6 +60,19 @@ class Boundaries:
     def __len__(self) -> int:
         return int(self.area.shape[0])
 
+    def enlarged(self, factor: int) -> Boundaries:
+        """These boundaries, traced on an image reduced by ``factor`` x ``factor`` block means,
+        in the full image's pixels (a reduced pixel ``i`` covers full pixels ``factor * i`` to
+        ``factor * i + factor - 1``, so its centre lies at ``factor * (i + 1/2) - 1/2``)."""
+        f = float(factor)
+        return Boundaries(
+            f * (self.centre + 0.5) - 0.5,
+            f * self.axes,
+            self.angle,
+            f * f * self.area,
+            self.ellipticity,
+        )
+
     def select(self, keep: NDArray[np.bool_]) -> Boundaries:
         """The boundaries where ``keep`` is true."""
         return Boundaries(

@@ -54,7 +54,7 @@ from .edge_fit import EdgeFits, refine_annuli, refine_ellipses
 from .ellipse import estimate_noise, fit_ellipses
 from .errors import DetectorError
 from .profile_fit import MAX_WINDOW_PX, line_counts, refine_by_profiles_f32
-from .threshold import DEFAULT_T, bradley_threshold
+from .threshold import DEFAULT_T, bradley_threshold, default_window
 from .types import Ellipse, FiducialDetection
 
 DesignChoice = Literal["ring", "dot", "any"]
@@ -118,6 +118,10 @@ SMALL_ANNULUS_ITERATIONS = 8
 #: Below the edge model's smallest size, annulus fits whose RMS residual exceeds this many times
 #: the median of the image's fits (at least the noise) are replaced by the dual conic.
 ANNULUS_OUTLIER_CHI = 3.0
+#: Reduction factors :func:`detect` takes for its candidate search (``decimate``).
+DECIMATE_FACTORS: tuple[int, ...] = (1, 2, 3, 4)
+#: Images smaller than this (reduced pixels, either side) are searched at full resolution.
+_MIN_DECIMATED_SIDE = 16
 #: Sub-pixel ellipse methods of step 4: ``profile`` (edge profiles along the normals,
 #: :mod:`.profile_fit`: fast) and ``ml`` (the maximum-likelihood blurred-edge model of
 #: :mod:`.edge_fit`: slower, at the Cramer-Rao bound).
@@ -155,6 +159,7 @@ class DetectorConfig:
     max_diameter_px: float | None = None
     reader: ReaderConfig = field(default_factory=ReaderConfig)
     subpixel: SubpixelMethod = "profile"
+    decimate: int = 1
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -179,6 +184,7 @@ def detect(
     max_hamming: int = 1,
     min_contrast: float = DEFAULT_MIN_CONTRAST,
     subpixel: SubpixelMethod = "profile",
+    decimate: int = 1,
 ) -> list[FiducialDetection]:
     """Find armourcam fiducials in an image.
 
@@ -202,6 +208,15 @@ def detect(
     subpixel : {"profile", "ml"}
         Sub-pixel ellipse method (see :func:`fit_design_circles`): ``profile`` is several times
         faster, ``ml`` reaches the Cramer-Rao bound (about half the centre std).
+    decimate : {1, 2, 3, 4}
+        Find the candidates (threshold and boundaries, steps 1-2) on the image reduced by this
+        factor (block means), like AprilTag's ``quad_decimate``; codes are read and every circle
+        fitted on the full image, seeded from the reduced boundaries, so the results are those
+        of the full search (centres within 0.01 px). 2 takes about 9 ms off a 6 Mpx frame, but
+        small fiducials' annuli and dots blur into their surround in the reduced image. On the
+        recall benchmark (every degradation, slant up to 70 deg) nothing is lost at 2 from
+        ``ring`` fiducials of 45 px across and ``dot`` ones of 60 px, nor at 3 from ``ring``
+        ones of 70 px and ``dot`` ones of 120 px; keep 1 for smaller ones.
 
     Returns
     -------
@@ -224,6 +239,8 @@ def detect(
         raise DetectorError(f"min_diameter_px must be > 0, got {min_diameter_px}")
     if subpixel not in SUBPIXEL_METHODS:
         raise DetectorError(f"subpixel must be one of {SUBPIXEL_METHODS}, got {subpixel!r}")
+    if isinstance(decimate, bool) or decimate not in DECIMATE_FACTORS:
+        raise DetectorError(f"decimate must be one of {DECIMATE_FACTORS}, got {decimate!r}")
     config = DetectorConfig(
         design=design,
         threshold_window=threshold_window,
@@ -232,6 +249,7 @@ def detect(
         max_diameter_px=max_diameter_px,
         reader=ReaderConfig(min_contrast=min_contrast, max_hamming=max_hamming),
         subpixel=subpixel,
+        decimate=int(decimate),
     )
     grey, full_scale = to_grey(image)
     return detect_grey(grey, full_scale, config)
@@ -298,13 +316,8 @@ def detect_grey(
 ) -> list[FiducialDetection]:
     """:func:`detect` on an already validated one-channel image (see :func:`to_grey`)."""
     h, w = grey.shape
-    binary = bradley_threshold(
-        _to_uint8(grey, full_scale), window=config.threshold_window, t=config.threshold_t
-    )
     max_d = config.max_diameter_px if config.max_diameter_px is not None else float(min(h, w))
-    bounds = outer_boundaries(
-        binary, max_extent=max_d, min_hull_extent=0.9 * config.min_diameter_px
-    )
+    bounds = _boundaries(_to_uint8(grey, full_scale), config, max_d)
     found: list[FiducialDetection] = []
     designs = (RING, DOT) if config.design == "any" else (DESIGNS[config.design],)
     noise: float | None = None  # estimated once, when the first candidates need it
@@ -317,6 +330,30 @@ def detect_grey(
     found = _deduplicate(found)
     found.sort(key=lambda d: (d.center_px[1], d.center_px[0]))
     return found
+
+
+def _boundaries(grey8: NDArray[np.uint8], config: DetectorConfig, max_d: float) -> Boundaries:
+    """Steps 1-2: threshold and outer boundaries, on the image reduced by ``config.decimate``
+    (see :func:`detect`), in full-image pixels."""
+    f = config.decimate
+    window = config.threshold_window
+    h, w = grey8.shape
+    if f > 1 and min(h, w) >= f * _MIN_DECIMATED_SIDE:
+        # The same window, in reduced pixels.
+        window = max(3, (window or default_window(grey8.shape)) // f) | 1
+        grey8 = np.asarray(
+            cv2.resize(
+                grey8[: h - h % f, : w - w % f], (w // f, h // f), interpolation=cv2.INTER_AREA
+            ),
+            dtype=np.uint8,
+        )
+    else:
+        f = 1
+    binary = bradley_threshold(grey8, window=window, t=config.threshold_t)
+    bounds = outer_boundaries(
+        binary, max_extent=max_d / f, min_hull_extent=0.9 * config.min_diameter_px / f
+    )
+    return bounds if f == 1 else bounds.enlarged(f)
 
 
 def _candidates(

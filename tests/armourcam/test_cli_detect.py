@@ -61,6 +61,16 @@ def test_json_output(tmp_path: Path, scene_image: np.ndarray, capsys) -> None:  
     assert ring["hamming"] == 0 and 0.5 < ring["contrast"] < 0.9
     _, out, _ = _run(capsys, str(path), "--json", "--design", "dot")
     assert [d["code"] for d in json.loads(out)["images"][0]["detections"]] == [9]
+    # The 60 px fiducials are found on the frame reduced 2x as on the full one.
+    _, out, _ = _run(capsys, str(path), "--json", "--decimate", "2")
+    reduced = sorted(json.loads(out)["images"][0]["detections"], key=lambda d: d["center_px"][0])
+    assert [d["code"] for d in reduced] == [5, 9]
+    for a, b in zip(dets, reduced, strict=True):
+        assert np.allclose(a["center_px"], b["center_px"], atol=0.01)
+    with pytest.raises(SystemExit) as exit_info:
+        _run(capsys, str(path), "--decimate", "5")
+    assert exit_info.value.code == 2
+    assert "--decimate" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

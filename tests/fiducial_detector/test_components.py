@@ -148,3 +148,26 @@ def test_diagonal_parts_are_the_four_connected_components() -> None:
     apart |= _ellipse_mask((60, 80), (50.0, 30.0), (8.0, 3.0), 30.0)
     contours, _ = cv2.findContours(apart, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     assert _diagonal_parts(apart, list(contours), np.arange(len(contours))) == []
+
+
+def test_boundaries_on_a_reduced_image_are_enlarged_to_full_pixels() -> None:
+    """An ellipse traced on the image reduced by 2x2 and 3x3 block means, enlarged, has the
+    full image's centre and axes (within the reduced pixel's quantisation)."""
+    centre, axes = (161.3, 97.8), (44.0, 21.0)
+    mask = _ellipse_mask((240, 330), centre, axes, 35.0)
+    full = outer_boundaries(mask, max_extent=400)
+    perimeter = np.pi * (axes[0] + axes[1]) * 1.1
+    for f in (2, 3):
+        h, w = mask.shape
+        small = cv2.resize(
+            mask[: h - h % f, : w - w % f], (w // f, h // f), interpolation=cv2.INTER_AREA
+        )
+        small = np.where(small >= 128, 255, 0).astype(np.uint8)
+        b = outer_boundaries(small, max_extent=400 / f).enlarged(f)
+        assert len(b) == 1
+        assert np.allclose(b.centre[0], centre, atol=0.1 * f), (f, b.centre[0])
+        assert np.allclose(b.axes[0], axes, atol=0.6 * f), (f, b.axes[0])
+        assert abs(np.degrees(b.angle[0]) - 35.0) < 1.5
+        # The polygon joins the outermost pixels' centres: a reduced pixel's half-width along
+        # the boundary at most separates it from the full image's.
+        assert abs(b.area[0] - full.area[0]) <= 0.5 * f * perimeter

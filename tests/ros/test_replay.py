@@ -95,7 +95,8 @@ def test_reliable_replay_loses_no_frame(
 
 
 def test_real_fixture_bag_replays_and_yields_zero_fiducials(nodes: Nodes, probe: Probe) -> None:
-    start_pipeline(nodes, transport="compressed")
+    # With the candidate search on frames reduced 2x (the node's ``decimate`` parameter).
+    start_pipeline(nodes, transport="compressed", decimate=2)
     counter = Counter(probe)
     assert counter.wait_ready(), nodes.log("pose_estimator")
     out = armourcam(

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from fiducial_detector import DetectorError, detect
-from fiducial_detector.detect import SUBPIXEL_METHODS
+from fiducial_detector.detect import DECIMATE_FACTORS, SUBPIXEL_METHODS
 from fiducial_detector.types import Ellipse, FiducialDetection
 from pose_estimator import CalibrationError, CameraModel, FiducialPose, estimate
 from pose_estimator.image_fit import refine_from_image
@@ -51,6 +51,15 @@ def register(subparsers: Any) -> None:
         default="profile",
         help="sub-pixel ellipse method: profile (default, fast) or ml (the edge model, about "
         "half the centre noise)",
+    )
+    parser.add_argument(
+        "--decimate",
+        type=int,
+        choices=DECIMATE_FACTORS,
+        default=1,
+        help="find candidates on the image reduced by this factor (1: full resolution; 2 saves "
+        "about 9 ms on a 6 Mpx frame, for fiducials at least 45 px across (ring design) or 60 "
+        "px (dot)); codes and fits use the full image",
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument(
@@ -158,6 +167,7 @@ def detect_file(
     camera: CameraModel | None = None,
     diameter_mm: float = 7.1,
     image_fit: bool = False,
+    decimate: int = 1,
 ) -> dict[str, Any]:
     """Read and process one file; errors become the record's one-line ``error``. With a
     camera each detection gets its pose (:func:`pose_estimator.estimate`, refined by
@@ -166,7 +176,12 @@ def detect_file(
         image = read_image(path)
         if camera is not None:
             camera.check_image_size(image.shape[1], image.shape[0])
-        found = detect(image, design=design, subpixel=subpixel)  # type: ignore[arg-type]
+        found = detect(
+            image,
+            design=design,  # type: ignore[arg-type]
+            subpixel=subpixel,  # type: ignore[arg-type]
+            decimate=decimate,
+        )
         poses: dict[int, FiducialPose] = {}
         if camera is not None:
             estimated = estimate(found, camera, diameter_mm)
@@ -216,6 +231,7 @@ def run(args: argparse.Namespace) -> int:
             camera=args.camera,
             diameter_mm=args.diameter_mm,
             image_fit=args.image_fit,
+            decimate=args.decimate,
         )
         for path in args.images
     ]
