@@ -16,7 +16,11 @@ it reports is a wrong code.
 Targets (issue 2): at 35-120 px and slant <= 70 deg recall >= 99.5 % with zero wrong codes in every
 degradation; at 25 px and slant <= 60 deg recall >= 95 %.
 
-Run: ``.venv/bin/python -m benchmarks.detector_recall [--quick] [--bases N] [--noises N]``.
+``--decimate N`` runs :func:`detect` with its candidate search on the image reduced N x N (the
+targets hold for N = 1, the default); ``--sizes`` picks sizes.
+
+Run: ``.venv/bin/python -m benchmarks.detector_recall [--quick] [--bases N] [--noises N]
+[--sizes 120,60] [--decimate N]``.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 Pipeline, designed so that only cheap vectorised work touches every pixel or every boundary:
 
 1. Bradley & Roth adaptive threshold of an 8-bit copy, plus a thin-dark-line test
-   (:mod:`.threshold`), full resolution.
+   (:mod:`.threshold`), at full resolution or, with ``decimate``, on the image reduced by
+   block means (steps 1-2 only).
 2. Outer boundaries of the black components (:mod:`.components`) with step 2's length limits,
    each summarised by its moment ellipse (a broken thin ring by its convex hull's; components
    joined only at pixel corners, such as a slanted dot and a code sector, also by their
