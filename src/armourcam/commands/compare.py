@@ -14,6 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .detect import add_decimate_option
+
 DEFAULT_DN_MM = 20.5  # a 38 mm dolos (Dn ~ 0.54 H)
 
 
@@ -42,15 +44,7 @@ def register(subparsers: Any) -> None:
         default="profile",
         help="sub-pixel ellipse method (ml: the edge model, about half the centre noise, slower)",
     )
-    p.add_argument(
-        "--decimate",
-        type=int,
-        choices=(1, 2, 3, 4),  # fiducial_detector.detect.DECIMATE_FACTORS (imported lazily)
-        default=1,
-        help="find candidates on the image reduced by this factor (1: full resolution; 2 saves "
-        "about 9 ms on a 6 Mpx frame, for fiducials at least 45 px across (ring design) or 60 "
-        "px (dot)); codes and fits use the full image",
-    )
+    add_decimate_option(p)
     p.add_argument(
         "--image-fit",
         action="store_true",

@@ -52,15 +52,7 @@ def register(subparsers: Any) -> None:
         help="sub-pixel ellipse method: profile (default, fast) or ml (the edge model, about "
         "half the centre noise)",
     )
-    parser.add_argument(
-        "--decimate",
-        type=int,
-        choices=DECIMATE_FACTORS,
-        default=1,
-        help="find candidates on the image reduced by this factor (1: full resolution; 2 saves "
-        "about 9 ms on a 6 Mpx frame, for fiducials at least 45 px across (ring design) or 60 "
-        "px (dot)); codes and fits use the full image",
-    )
+    add_decimate_option(parser)
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument(
         "--camera",
@@ -157,6 +149,20 @@ def pose_record(pose: FiducialPose | None) -> dict[str, Any]:
         "normal": [float(x) for x in pose.normal],
         "sigma_mm": [float(x) for x in pose.sigma_mm],
     }
+
+
+def add_decimate_option(parser: argparse.ArgumentParser) -> None:
+    """``--decimate``: :func:`fiducial_detector.detect`'s candidate-search reduction (shared by
+    the commands that detect)."""
+    parser.add_argument(
+        "--decimate",
+        type=int,
+        choices=DECIMATE_FACTORS,
+        default=1,
+        help="find candidates on the image reduced by this factor (1: full resolution; 2 saves "
+        "about 9 ms on a 6 Mpx frame, for fiducials at least 45 px across (ring design) or 60 "
+        "px (dot)); codes and fits use the full image",
+    )
 
 
 def detect_file(
