@@ -177,14 +177,14 @@ class Param:
     """A node parameter: name, default (its type fixes the parameter's type), description.
 
     ``read_only`` parameters are structural (topics, QoS, queue depths): fixed at start-up.
-    ``choices`` restricts a string parameter; ``minimum`` a numeric one.
+    ``choices`` restricts a string or integer parameter; ``minimum`` a numeric one.
     """
 
     name: str
     default: Any
     description: str
     read_only: bool = True
-    choices: tuple[str, ...] = ()
+    choices: tuple[str, ...] | tuple[int, ...] = ()
     minimum: float | None = None
 
 
@@ -209,7 +209,7 @@ def declare_parameters(node: Node, params: Sequence[Param]) -> dict[str, Any]:
     for p in params:
         extra = ""
         if p.choices:
-            extra = f" One of: {', '.join(p.choices)}."
+            extra = f" One of: {', '.join(map(str, p.choices))}."
         elif p.minimum is not None:
             extra = f" Minimum: {p.minimum}."
         desc = ParameterDescriptor(

@@ -55,7 +55,7 @@ from .edge_fit import EdgeFits, refine_annuli, refine_ellipses
 from .ellipse import estimate_noise, fit_ellipses
 from .errors import DetectorError
 from .profile_fit import MAX_WINDOW_PX, line_counts, refine_by_profiles_f32
-from .threshold import DEFAULT_T, bradley_threshold, default_window
+from .threshold import DEFAULT_T, block_means, bradley_threshold, default_window
 from .types import Ellipse, FiducialDetection
 
 DesignChoice = Literal["ring", "dot", "any"]
@@ -342,12 +342,7 @@ def _boundaries(grey8: NDArray[np.uint8], config: DetectorConfig, max_d: float) 
     if f > 1 and min(h, w) >= f * _MIN_DECIMATED_SIDE:
         # The same window, in reduced pixels.
         window = max(3, (window or default_window(grey8.shape)) // f) | 1
-        grey8 = np.asarray(
-            cv2.resize(
-                grey8[: h - h % f, : w - w % f], (w // f, h // f), interpolation=cv2.INTER_AREA
-            ),
-            dtype=np.uint8,
-        )
+        grey8 = block_means(grey8, f)
     else:
         f = 1
     binary = bradley_threshold(grey8, window=window, t=config.threshold_t)

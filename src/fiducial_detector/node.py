@@ -95,7 +95,7 @@ PARAMS = (
         "Candidate search on the image reduced by this factor (1-4; codes and fits use the full "
         "image). 2 saves about 9 ms on a 6 Mpx frame; fiducials must then be at least 45 px "
         "across (ring design) or 60 px (dot).",
-        minimum=1,
+        choices=DECIMATE_FACTORS,
     ),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics, s.", minimum=0.1),
 )
@@ -136,10 +136,6 @@ class FiducialDetectorNode(Node):
         self._detect = detect
         if not cfg.image_topic or not cfg.detections_topic:
             raise GraphError("fiducial_detector: image_topic and detections_topic must be set")
-        if cfg.decimate not in DECIMATE_FACTORS:
-            raise GraphError(
-                f"fiducial_detector: decimate must be one of {DECIMATE_FACTORS}, got {cfg.decimate}"
-            )
         qos = stream_qos(cfg.qos, cfg.queue_depth)
         self._pub = self.create_publisher(
             PointCloud2, cfg.detections_topic, record_qos(cfg.qos, cfg.queue_depth)

@@ -123,6 +123,22 @@ def bradley_threshold(
 MEAN_CELLS = 64
 
 
+def block_means(image: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:
+    """``image`` reduced by the means of ``factor`` x ``factor`` blocks (``INTER_AREA`` at an
+    integer factor; an incomplete last row or column of blocks is dropped, which moves a mean
+    by nothing visible). Reduced pixel ``i`` covers full pixels ``factor * i`` to
+    ``factor * i + factor - 1``."""
+    h, w = image.shape
+    return np.asarray(
+        cv2.resize(
+            image[: h - h % factor, : w - w % factor],
+            (w // factor, h // factor),
+            interpolation=cv2.INTER_AREA,
+        ),
+        dtype=np.uint8,
+    )
+
+
 def _window_limit(
     grey: NDArray[np.uint8], sides: tuple[int, ...], lut: NDArray[np.uint8]
 ) -> NDArray[np.uint8]:
@@ -143,12 +159,7 @@ def _window_limit(
         factor *= 2
     small: NDArray[Any] = grey
     for _ in range(factor.bit_length() - 1):
-        # Halving an odd side drops its last row or column; it changes the mean by nothing
-        # visible and keeps every halving an exact 2x2 block mean.
-        hs, ws = small.shape
-        small = cv2.resize(
-            small[: hs - hs % 2, : ws - ws % 2], (ws // 2, hs // 2), interpolation=cv2.INTER_AREA
-        )
+        small = block_means(small, 2)  # exact 2x2 block means, halving after halving
     limit: NDArray[Any] | None = None
     for side in sides:
         cells = max(3, round(side / factor)) | 1

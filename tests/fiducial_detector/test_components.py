@@ -12,6 +12,7 @@ from fiducial_detector.components import (
     _polygon_moments,
     outer_boundaries,
 )
+from fiducial_detector.threshold import block_means
 
 
 def _ellipse_mask(shape: tuple[int, int], centre, axes, angle_deg, thickness=-1):  # type: ignore[no-untyped-def]
@@ -158,11 +159,7 @@ def test_boundaries_on_a_reduced_image_are_enlarged_to_full_pixels() -> None:
     full = outer_boundaries(mask, max_extent=400)
     perimeter = np.pi * (axes[0] + axes[1]) * 1.1
     for f in (2, 3):
-        h, w = mask.shape
-        small = cv2.resize(
-            mask[: h - h % f, : w - w % f], (w // f, h // f), interpolation=cv2.INTER_AREA
-        )
-        small = np.where(small >= 128, 255, 0).astype(np.uint8)
+        small = np.where(block_means(mask, f) >= 128, 255, 0).astype(np.uint8)
         b = outer_boundaries(small, max_extent=400 / f).enlarged(f)
         assert len(b) == 1
         assert np.allclose(b.centre[0], centre, atol=0.1 * f), (f, b.centre[0])
