@@ -46,6 +46,14 @@ from .units import (
     units_of,
 )
 
+#: A pair whose displacement is within its own noise (chi-square, 3 degrees of freedom, p =
+#: 0.05, from both poses' covariances) or shorter than :data:`UNMOVED_MM` has not moved.
+UNMOVED_CHI2 = 7.81
+#: Length below which a pair has not moved whatever its covariances say (compression artefacts
+#: and model misfit that differ between two images shift a pose by microns, beyond a clean
+#: image's noise-only covariance); far below any motion the damage count tells apart.
+UNMOVED_MM = 0.5
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class UnitAnalysis:
@@ -466,12 +474,27 @@ def _unit_conflicts(
     rules nothing out: one claim each cannot tell a hidden still unit's grab from a mover that
     landed beside a still neighbour (the current grouping then joins the two; seen on the
     bundled session bag, where preferring the claim still in place discarded a true 40 mm move).
+    Nor is a pair wrong whose baseline unit is matched where it was as a whole (every fiducial
+    of it, :func:`_unmoved`): it grabbed nothing, and where the two groupings disagree about
+    fiducials that all stayed put (targets on a flat sheet, grouped by distance alone) it is
+    the grouping that is in doubt. (One pair in place is not enough: a baseline unit that
+    wrongly holds a still neighbour's face beside a mover's is taken apart by this rule, as on
+    the bundled session bag.)
     """
     unit_of = {i: n for n, (_, ix) in enumerate(base_units) for i in ix}
     pair_of: dict[int, int] = {
         int(d.current_index): int(d.baseline_index)
         for d in result.displacements
         if d.is_match and d.current_index is not None and d.baseline_index is not None
+    }
+    # Baseline units every fiducial of which is matched where it was.
+    match_of = {i: j for j, i in pair_of.items()}
+    in_place = {
+        n
+        for n, (_, ix) in enumerate(base_units)
+        if all(
+            i in match_of and _unmoved(result.baseline[i], result.current[match_of[i]]) for i in ix
+        )
     }
     out: set[tuple[int, int]] = set()
     for g in cur_groups:
@@ -485,9 +508,29 @@ def _unit_conflicts(
         if len(winners) != 1:
             continue
         for (i, j), o in zip(members, owners, strict=True):
-            if o != winners[0]:
+            if o != winners[0] and o not in in_place:
                 out.add((i, j))
     return out
+
+
+def _unmoved(before: FiducialPose, after: FiducialPose) -> bool:
+    """Whether a pair of the same code lies where it was, within its noise (see
+    :data:`UNMOVED_CHI2`, :data:`UNMOVED_MM`)."""
+    if int(before.code) != int(after.code):
+        return False
+    d = np.asarray(after.position_mm, dtype=np.float64) - np.asarray(
+        before.position_mm, dtype=np.float64
+    )
+    if float(np.linalg.norm(d)) <= UNMOVED_MM:
+        return True
+    cov = np.asarray(before.covariance_mm2, dtype=np.float64) + np.asarray(
+        after.covariance_mm2, dtype=np.float64
+    )
+    try:
+        chi2 = float(d @ np.linalg.solve(cov, d))
+    except np.linalg.LinAlgError:
+        return False
+    return bool(np.isfinite(chi2) and 0.0 <= chi2 <= UNMOVED_CHI2)
 
 
 def _neighbour_faces_taken(
