@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from displacement_matcher.atomic import write_atomic
 from displacement_matcher.markers import Comparer, displacement_records
 from displacement_matcher.session import (
     BaselineCaptured,
@@ -61,12 +62,18 @@ class AnalysisResult:
     notices: list[str] = field(default_factory=list)
     baseline_fiducials: int | None = None
     topics: dict[str, str] = field(default_factory=dict)
+    #: Where the bag stopped being readable (None: read to its end).
+    truncation: str | None = None
 
 
 def _pick_hall(bag: bagio.Bag, given: str | None, msgtype: str, default: str) -> str | None:
     if given:
         if given not in bag.topics:
             raise AnalyzeError(f"{bag.path}: topic {given} is not in the bag")
+        if given not in bag.topics_of_type(msgtype):
+            raise AnalyzeError(
+                f"{bag.path}: topic {given} is {bag.topics[given].msgtype}, not {msgtype}"
+            )
         return given
     if default in bag.topics:
         return default
@@ -181,7 +188,8 @@ def analyze_bag(
                     progress(k + 1, total)
             handle(session.end_of_input(), bag.end_ns if hasattr(bag, "end_ns") else 0)
             if bag.truncation is not None:
-                result.notices.append(f"warn: {bag.truncation.describe()}")
+                result.truncation = bag.truncation.describe()
+                result.notices.append(f"warn: {result.truncation}")
     if session.baseline is not None:
         result.baseline_fiducials = len(session.baseline.poses)
     write_reports(out_dir, bag_path, result)
@@ -206,8 +214,9 @@ def write_reports(out_dir: Path, bag_path: Path, result: AnalysisResult) -> None
     runs_dir.mkdir(parents=True, exist_ok=True)
     for run in result.runs:
         safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in run.run_id)
-        (runs_dir / f"{run.sequence:04d}-{safe}.json").write_text(
-            json.dumps(_json_safe(run.report), indent=1)
+        write_atomic(
+            runs_dir / f"{run.sequence:04d}-{safe}.json",
+            json.dumps(_json_safe(run.report), indent=1).encode(),
         )
     doc = {
         "bag": str(bag_path),
@@ -221,7 +230,7 @@ def write_reports(out_dir: Path, bag_path: Path, result: AnalysisResult) -> None
         "runs": [_json_safe(r.report) for r in result.runs],
         "notices": result.notices,
     }
-    (out_dir / "report.json").write_text(json.dumps(doc, indent=1))
+    write_atomic(out_dir / "report.json", json.dumps(doc, indent=1).encode())
 
 
 # ---------------------------------------------------------------------- markers bag
@@ -333,10 +342,13 @@ def write_run_outputs(out: bagio.BagWriter, run: RunRecord, t_ns: int, frame_id:
 
 
 def text_progress(label: str) -> Callable[[int, int], None]:
-    """A progress bar on stderr (redrawn at most 100 times)."""
+    """A progress bar on stderr (redrawn at most 100 times; none where stderr is no terminal,
+    whose log would keep every redraw)."""
     state = {"last": -1}
 
     def show(i: int, n: int) -> None:
+        if not sys.stderr.isatty():
+            return
         pct = int(100 * i / max(n, 1))
         if pct == state["last"] and i < n:
             return

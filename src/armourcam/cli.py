@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -42,6 +44,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         status = args.func(args)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # The reader went away (``armourcam detect --json ... | head``): stop quietly with the
+        # status a process killed by SIGPIPE has in a shell, and keep Python from reporting the
+        # failed flush of stdout at exit.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
     except (ValueError, OSError) as err:
         print(f"armourcam {args.command}: error: {err}", file=sys.stderr)
         return 2

@@ -7,11 +7,21 @@ in OpenCV's BGR(A) order, ``uint8`` or ``uint16``; :func:`fiducial_detector.dete
 Every failure raises :class:`ImageReadError` with one line naming the file and the problem: a
 missing or unreadable file, an empty file, data that is not a PNG, JPEG or TIFF image, a truncated
 PNG (no ``IEND`` chunk) or JPEG (no end-of-image marker; libjpeg would fill the missing part with
-grey and return a plausible image), or data the decoder rejects.
+grey and return a plausible image), data the decoder rejects, or JPEG data libjpeg reports as
+corrupt while decoding (entropy-coded data damaged in the middle: it too fills the rest with grey).
+What the decoders print themselves (libpng, libjpeg, OpenCV's log) is caught rather than left on
+the terminal without a file name; it names the problem in the error, and is dropped where the
+image decoded whole (a libpng colour-profile warning, extraneous bytes after a JPEG's data).
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import re
+import sys
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -21,6 +31,8 @@ from numpy.typing import NDArray
 _PNG = b"\x89PNG\r\n\x1a\n"
 _JPEG = b"\xff\xd8\xff"
 _TIFF = (b"II*\x00", b"MM\x00*")
+#: OpenCV's log prefix: ``[ WARN:0@0.221] global grfmt_png.cpp:793 readFromStreamOrBuffer``.
+_OPENCV_LOG = re.compile(r"^\[\s*[A-Z]+:[^\]]*\]\s*(global\s+\S+:\d+\s+\S+\s+)?")
 
 
 class ImageReadError(ValueError):
@@ -74,9 +86,13 @@ def read_image(path: str | Path) -> NDArray[np.generic]:
     if kind == "jpeg" and b"\xff\xd9" not in data[-4096:]:
         raise ImageReadError(f"{name}: truncated JPEG ({len(data)} bytes, no end-of-image marker)")
     flags = cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+    with _decoder_messages() as messages:
+        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+    said = f" ({messages[0]})" if messages else ""
     if image is None or image.size == 0:
-        raise ImageReadError(f"{name}: corrupt {kind.upper()} data, cannot be decoded")
+        raise ImageReadError(f"{name}: corrupt {kind.upper()} data, cannot be decoded{said}")
+    if kind == "jpeg" and any(_damaged_jpeg(m) for m in messages):
+        raise ImageReadError(f"{name}: corrupt JPEG data{said}")
     if image.dtype not in (np.uint8, np.uint16):
         raise ImageReadError(
             f"{name}: unsupported sample type {image.dtype} (8- or 16-bit images only)"
@@ -84,3 +100,31 @@ def read_image(path: str | Path) -> NDArray[np.generic]:
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
     return np.asarray(image)
+
+
+def _damaged_jpeg(message: str) -> bool:
+    """Whether a libjpeg message means image data was lost (not merely extra bytes)."""
+    return "Corrupt JPEG data" in message and "extraneous bytes" not in message
+
+
+@contextlib.contextmanager
+def _decoder_messages() -> Iterator[list[str]]:
+    """Collect what native code writes to the process' standard error meanwhile (file
+    descriptor 2, where libpng, libjpeg and OpenCV's log write), one stripped line each."""
+    lines: list[str] = []
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with tempfile.TemporaryFile() as sink:
+            os.dup2(sink.fileno(), 2)
+            try:
+                yield lines
+            finally:
+                os.dup2(saved, 2)
+                sink.seek(0)
+                text = sink.read().decode(errors="replace")
+                lines.extend(
+                    _OPENCV_LOG.sub("", line.strip()) for line in text.splitlines() if line.strip()
+                )
+    finally:
+        os.close(saved)

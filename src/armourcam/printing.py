@@ -47,6 +47,9 @@ DETAIL_FONT_PT = 5.0
 MIN_FEATURE_DOTS = 2.0  # thinnest printed feature must span at least this many printer dots
 SCALE_BAR_MM = 50.0
 PNG_MARGIN = 0.5  # white margin on each side of the PNG target, in target diameters
+#: Largest side of a single-target PNG (its supersampling lattice holds about 24 bytes per pixel
+#: of twice that side squared: 1.5 GB here; a 7.1 mm target at 4800 dpi is 2,700 px).
+MAX_PNG_SIDE_PX = 4000
 
 
 class PrintError(ValueError):
@@ -206,7 +209,13 @@ def target_image(
     if supersample < 1:
         raise PrintError(f"supersample must be >= 1, got {supersample}")
     radius_px = diameter_mm / MM_PER_INCH * dpi / 2.0
-    n = math.ceil(2.0 * radius_px * (1.0 + 2.0 * PNG_MARGIN))
+    side = 2.0 * radius_px * (1.0 + 2.0 * PNG_MARGIN)
+    if side > MAX_PNG_SIDE_PX:
+        raise PrintError(
+            f"a {diameter_mm} mm target at {_num(dpi)} dpi would be {side:.0f} px across; "
+            f"single-target PNGs are at most {MAX_PNG_SIDE_PX} px (lower the dpi)"
+        )
+    n = math.ceil(side)
     c = (n - 1) / 2.0
 
     def refl(u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -18,8 +18,6 @@ import csv
 import io
 import json
 import math
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -30,6 +28,7 @@ from numpy.typing import NDArray
 
 from pose_estimator.camera import CameraModel
 
+from .atomic import write_atomic
 from .errors import MatcherError
 from .types import DamageSummary, MatchResult, UnitMotion
 
@@ -37,23 +36,6 @@ GREEN = (60, 200, 60)  # BGR
 RED = (40, 40, 230)
 YELLOW = (0, 220, 240)
 BLUE = (230, 120, 30)
-
-
-def write_atomic(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temp file in the same directory + ``os.replace``)."""
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return target
 
 
 def _vec(x: NDArray[np.float64] | None) -> list[float] | None:

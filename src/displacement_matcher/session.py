@@ -26,12 +26,9 @@ Frames are pose sets in the camera frame (millimetres, OpenCV axes) as produced 
 
 from __future__ import annotations
 
-import contextlib
 import enum
 import json
-import os
 import re
-import tempfile
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -43,6 +40,8 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from pose_estimator.types import FiducialPose
+
+from .atomic import write_atomic
 
 FORMAT_VERSION = 1
 #: The run in progress, beside ``baseline.json`` and ``runs/`` in the data directory.
@@ -756,23 +755,8 @@ def _read_json(path: Path) -> dict[str, Any]:
 
 
 def write_json_atomic(path: Path, doc: Any) -> None:
-    """Write JSON so that readers see the old file or the new one, never a torn one.
-
-    The text goes to a temporary file in the same directory, is flushed to disk, then replaces
-    ``path`` with ``os.replace`` (atomic on POSIX within one file system).
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(doc, f, indent=1, allow_nan=True)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    """Write ``doc`` as JSON atomically (:func:`.atomic.write_atomic`)."""
+    write_atomic(path, json.dumps(doc, indent=1, allow_nan=True).encode())
 
 
 def pose_to_dict(pose: FiducialPose) -> dict[str, Any]:

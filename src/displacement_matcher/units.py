@@ -43,12 +43,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from fiducial_detector.codebook import code_count
 from pose_estimator.types import FiducialPose
+from pose_estimator.yaml_file import YamlFileError, load_yaml
 
 from .errors import MatcherError
 from .rigid import consistent_subset, rigid_fit
@@ -207,9 +207,9 @@ def parse_unit_map(doc: Any) -> UnitMap:
 def load_unit_map(path: str | Path) -> UnitMap:
     """Read and validate a unit-map YAML file (raises :class:`MatcherError`)."""
     try:
-        doc = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as err:
-        raise MatcherError(f"cannot read unit map {path}: {err}") from err
+        doc = load_yaml(path)
+    except YamlFileError as err:
+        raise MatcherError(f"cannot read unit map {err}") from err
     try:
         return parse_unit_map(doc)
     except MatcherError as err:

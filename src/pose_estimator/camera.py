@@ -16,10 +16,10 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import CalibrationError
+from .yaml_file import YamlFileError, load_yaml
 
 _COEFF_COUNT = {"plumb_bob": 5, "rational_polynomial": 8}
 
@@ -258,9 +258,9 @@ class CameraModel:
             If the file cannot be read or lacks, or has malformed, required fields.
         """
         try:
-            doc = yaml.safe_load(Path(path).read_text())
-        except (OSError, yaml.YAMLError) as err:
-            raise CalibrationError(f"cannot read calibration {path}: {err}") from err
+            doc = load_yaml(path)
+        except YamlFileError as err:
+            raise CalibrationError(f"cannot read calibration {err}") from err
         if not isinstance(doc, dict):
             raise CalibrationError(f"calibration {path} is not a YAML mapping")
         try:

@@ -85,3 +85,37 @@ def test_analyze_refuses_an_existing_markers_bag(tmp_path: Path) -> None:
     (tmp_path / "markers").mkdir()
     with pytest.raises(AnalyzeError, match="markers"):
         analyze_bag(FIXTURE, tmp_path)
+
+
+def test_analyze_command_says_where_a_truncated_bag_stopped(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A bag cut short: what was readable is analysed and reported, the truncation is said on
+    stderr (not only in the report) and the exit status is 1 (some input could not be used)."""
+    from armourcam.cli import main
+
+    (mcap,) = BAG.glob("*.mcap")
+    data = mcap.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    assert main(["analyze", str(cut), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    (line,) = [s for s in err.splitlines() if "truncated" in s]
+    assert line.startswith(f"armourcam analyze: warn: {cut}: bag is truncated or damaged at byte")
+    doc = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert 0 < doc["frames"]["total"] < 17 and any("truncated" in n for n in doc["notices"])
+
+
+def test_analyze_command_fails_when_every_frame_is_dropped(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A calibration that fits none of the bag's frames: each dropped frame is named, each
+    run says why it was not measured, and the exit status is 1."""
+    import yaml
+
+    from armourcam.cli import main
+    from pose_estimator.camera import CameraModel
+
+    camera = tmp_path / "camera.yaml"
+    camera.write_text(yaml.safe_dump(CameraModel.ideal(1200, 800, 1400.0).to_dict()))
+    assert main(["analyze", str(BAG), "--out", str(tmp_path / "o"), "--camera", str(camera)]) == 1
+    captured = capsys.readouterr()
+    assert "run wave-001: settled=False: not measured: " in captured.out
+    dropped = [s for s in captured.err.splitlines() if "dropped" in s]
+    assert len(dropped) == 17 and "calibration is for 1200x800" in dropped[0]

@@ -140,3 +140,34 @@ def test_read_image_keeps_depth_and_channels(tmp_path: Path, scene_image: np.nda
     assert im.dtype == np.uint16 and im.shape == scene_image.shape
     with pytest.raises(ImageReadError, match="is a directory"):
         read_image(tmp_path)
+
+
+def test_damaged_data_inside_a_file_is_an_error_naming_it(  # type: ignore[no-untyped-def]
+    tmp_path: Path, scene_image: np.ndarray, capfd
+) -> None:
+    """A JPEG whose entropy-coded data stops half-way yet ends with the end-of-image marker
+    (libjpeg fills the rest with grey and says so on the process' stderr) and a PNG with a
+    damaged compressed stream: one error line each naming the file with the decoder's own
+    reason, nothing else on stderr."""
+    ok, jpg = cv2.imencode(".jpg", scene_image)
+    assert ok
+    bad_jpg = tmp_path / "halved.jpg"
+    bad_jpg.write_bytes(jpg.tobytes()[: jpg.size // 2] + b"\xff\xd9")
+    good = tmp_path / "good.png"
+    cv2.imwrite(str(good), scene_image)
+    png = bytearray(good.read_bytes())
+    idat = png.index(b"IDAT") + 8
+    png[idat : idat + 64] = bytes(range(64))
+    bad_png = tmp_path / "idat.png"
+    bad_png.write_bytes(bytes(png))
+    capfd.readouterr()
+    for path, reason in (
+        (bad_jpg, "corrupt JPEG data (Corrupt JPEG data"),
+        (bad_png, "corrupt PNG"),
+    ):
+        with pytest.raises(ImageReadError) as info:
+            read_image(path)
+        assert str(info.value).startswith(f"{path}: {reason}") and "\n" not in str(info.value)
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+    assert read_image(good).shape == scene_image.shape

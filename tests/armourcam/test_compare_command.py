@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
 from pathlib import Path
 
 import cv2
@@ -93,12 +95,28 @@ def test_compare_human_summary_and_bad_inputs(
     assert main(["compare", str(d / "before.png"), "--after", str(d / "before.png"), *base]) == 0
     text = capsys.readouterr().out
     assert "displaced 0" in text and "thresholds: displaced >=" in text
-    assert main(["compare", str(d / "nope.png"), "--after", str(d / "after.png"), *base]) == 2
-    assert "image not found" in capsys.readouterr().err
+    # Input files that cannot be used: each named with its problem, as `detect` does (exit 1);
+    # nothing is compared without a usable image of each state.
+    assert main(["compare", str(d / "nope.png"), "--after", str(d / "after.png"), *base]) == 1
+    err = capsys.readouterr().err
+    assert f"{d / 'nope.png'}: no such file" in err and "no usable BEFORE image" in err
     small = tmp_path / "small.png"
     cv2.imwrite(str(small), np.zeros((10, 10), np.uint8))
-    assert main(["compare", str(small), "--after", str(d / "after.png"), *base]) == 2
-    assert "calibration" in capsys.readouterr().err
+    assert main(["compare", str(small), "--after", str(d / "after.png"), *base]) == 1
+    err = capsys.readouterr().err
+    assert f"{small}: image is 10x10 but the calibration is for" in err
+    # One unusable BEFORE image among good ones: the others are compared, the report written.
+    out2 = tmp_path / "out2"
+    args2 = [str(d / "before.png"), str(small), "--after", str(d / "after.png")]
+    assert main(["compare", *args2, *base[:-2], "--out", str(out2)]) == 1
+    assert f"{small}: image is 10x10" in capsys.readouterr().err
+    rep = json.loads((out2 / "report.json").read_text())
+    assert rep["inputs"]["before"] == [str(d / "before.png")]
+    assert rep["inputs"]["unusable"] and str(small) in rep["inputs"]["unusable"][0]
+    # Reports are ordinary files (readable as other outputs are), not the temporary's 0600.
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert stat.S_IMODE((out2 / "units.csv").stat().st_mode) == 0o666 & ~mask
     bad_units = tmp_path / "u.yaml"
     bad_units.write_text("units: {A: {codes: [500]}}\n")
     args = ["compare", str(d / "before.png"), "--after", str(d / "after.png"), *base]

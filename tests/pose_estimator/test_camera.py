@@ -205,3 +205,14 @@ def test_camera_info_fields() -> None:
     assert cam.D.shape == (5,)
     ideal = CameraModel.from_camera_info(640, 480, np.ravel(K), "", [])
     assert not ideal.has_distortion
+
+
+def test_invalid_yaml_is_one_line_naming_file_and_place(tmp_path: Path) -> None:
+    """PyYAML's several-line message becomes one line with the file, line and column."""
+    path = tmp_path / "broken.yaml"
+    path.write_text("image_width: 1200\nimage_height: [800\n")
+    with pytest.raises(CalibrationError) as info:
+        CameraModel.from_yaml(path)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"cannot read calibration {path}: not valid YAML at line 3, column 1")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -93,10 +94,13 @@ def run(args: argparse.Namespace) -> int:
         f"{result.baseline_fiducials if result.baseline_fiducials is not None else 'none'}"
     )
     for r in result.runs:
-        summary = r.report.get("summary", {})
-        print(f"run {r.run_id}: settled={r.report.get('settled')}: {summary.get('text', summary)}")
+        summary = r.report.get("summary") or {}
+        said = summary.get("text") or f"not measured: {r.report.get('error') or 'no summary'}"
+        print(f"run {r.run_id}: settled={r.report.get('settled')}: {said}")
     for n in result.notices:
-        if n.startswith("error"):
-            print(n)
+        if not n.startswith("info"):  # the info notices are in the report
+            print(f"armourcam analyze: {n}", file=sys.stderr)
     print(f"report: {args.out / 'report.json'}; markers bag: {args.out / 'markers'}")
-    return 0
+    # Some input could not be used: the bag ends early, or no frame could be measured.
+    every_frame_dropped = result.frames > 0 and result.frames_dropped == result.frames
+    return 1 if result.truncation is not None or every_frame_dropped else 0

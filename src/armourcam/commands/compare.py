@@ -11,7 +11,6 @@ import argparse
 import json
 import math
 import sys
-from pathlib import Path
 from typing import Any
 
 from .detect import add_decimate_option
@@ -66,15 +65,26 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _read(path: str) -> Any:
-    import cv2
+def _readable(paths: list[str], camera: Any, failed: list[str]) -> tuple[list[str], list[Any]]:
+    """The images of one state that can be read and fit the calibration (with their paths);
+    one line naming the file and the problem per other file, appended to ``failed``."""
+    from pose_estimator.errors import CalibrationError
 
-    if not Path(path).is_file():
-        raise OSError(f"image not found: {path}")
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"cannot decode image {path}")
-    return img
+    from ..imageio import ImageReadError, read_image
+
+    used: list[str] = []
+    images: list[Any] = []
+    for path in paths:
+        try:
+            image = read_image(path)
+            camera.check_image_size(image.shape[1], image.shape[0])
+        except (ImageReadError, CalibrationError) as err:
+            message = str(err)
+            failed.append(message if message.startswith(path) else f"{path}: {message}")
+            continue
+        used.append(path)
+        images.append(image)
+    return used, images
 
 
 def run(args: argparse.Namespace) -> int:
@@ -96,8 +106,18 @@ def run(args: argparse.Namespace) -> int:
         overturn_deg=args.overturn_deg,
         lost_displaced=args.lost_displaced,
     )
-    before_imgs = [_read(p) for p in args.before]
-    after_imgs = [_read(p) for p in args.after]
+    failed: list[str] = []
+    before_paths, before_imgs = _readable(args.before, camera, failed)
+    after_paths, after_imgs = _readable(args.after, camera, failed)
+    for message in failed:
+        print(f"armourcam compare: error: {message}", file=sys.stderr)
+    missing = [name for name, imgs in (("BEFORE", before_imgs), ("AFTER", after_imgs)) if not imgs]
+    if missing:
+        print(
+            f"armourcam compare: error: no usable {' or '.join(missing)} image; nothing compared",
+            file=sys.stderr,
+        )
+        return 1
     before, after = (
         poses_from_images(
             imgs,
@@ -122,8 +142,9 @@ def run(args: argparse.Namespace) -> int:
     )
     extra = {
         "inputs": {
-            "before": list(args.before),
-            "after": list(args.after),
+            "before": before_paths,
+            "after": after_paths,
+            "unusable": failed,
             "camera": args.camera,
             "diameter_mm": args.diameter_mm,
             "before_fiducials": len(before),
@@ -153,4 +174,4 @@ def run(args: argparse.Namespace) -> int:
         )
         print(cmp.summary.describe())
         print(f"report written to {args.out}")
-    return 0
+    return 1 if failed else 0

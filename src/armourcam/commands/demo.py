@@ -153,13 +153,14 @@ def _wait_runs(data_dir: Path, n_runs: int, timeout: float, procs: dict[str, Any
 def _write_run_files(out: Path, run: dict[str, Any], camera: Any, after: Any) -> Path:
     """JSON, CSVs, plot and overlay of one run in OUT/<run_id>/."""
     from displacement_matcher import report as rep
+    from displacement_matcher.atomic import write_atomic
 
     run_dir = out / run["run_id"]
     run_dir.mkdir(parents=True, exist_ok=True)
     doc = run["report"]
-    rep.write_atomic(run_dir / "report.json", json.dumps(doc, indent=1).encode())
-    rep.write_atomic(run_dir / "fiducials.csv", rep.fiducials_csv(doc))
-    rep.write_atomic(run_dir / "units.csv", rep.units_csv(doc))
+    write_atomic(run_dir / "report.json", json.dumps(doc, indent=1).encode())
+    write_atomic(run_dir / "fiducials.csv", rep.fiducials_csv(doc))
+    write_atomic(run_dir / "units.csv", rep.units_csv(doc))
     _figures(run_dir, doc, camera, after)
     return run_dir
 
@@ -170,10 +171,11 @@ def _figures(run_dir: Path, doc: dict[str, Any], camera: Any, after: Any) -> Non
     import numpy as np
 
     from displacement_matcher import report as rep
+    from displacement_matcher.atomic import write_atomic
 
     dists = [f["distance_mm"] for f in doc["fiducials"] if f.get("distance_mm") is not None]
     if hasattr(rep, "magnitude_plot_from_dict"):
-        rep.write_atomic(run_dir / "plot.png", rep.magnitude_plot_from_dict(doc))
+        write_atomic(run_dir / "plot.png", rep.magnitude_plot_from_dict(doc))
     else:
         _simple_plot(run_dir / "plot.png", np.asarray(dists, dtype=float))
     if after is None or camera is None:
@@ -208,7 +210,7 @@ def _figures(run_dir: Path, doc: dict[str, Any], camera: Any, after: Any) -> Non
     )
     ok, buf = cv2.imencode(".png", img)
     if ok:
-        rep.write_atomic(run_dir / "overlay.png", buf.tobytes())
+        write_atomic(run_dir / "overlay.png", buf.tobytes())
 
 
 def _simple_plot(path: Path, dists: Any) -> None:
@@ -216,7 +218,7 @@ def _simple_plot(path: Path, dists: Any) -> None:
     import cv2
     import numpy as np
 
-    from displacement_matcher import report as rep
+    from displacement_matcher.atomic import write_atomic
 
     h, w, m = 360, 640, 40
     img = np.full((h, w, 3), 255, np.uint8)
@@ -236,7 +238,7 @@ def _simple_plot(path: Path, dists: Any) -> None:
     )
     ok, buf = cv2.imencode(".png", img)
     if ok:
-        rep.write_atomic(path, buf.tobytes())
+        write_atomic(path, buf.tobytes())
 
 
 def _print_table(runs: list[dict[str, Any]], truth: dict[str, Any] | None) -> None:

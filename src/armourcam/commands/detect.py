@@ -214,14 +214,26 @@ def _print_table(results: list[dict[str, Any]]) -> None:
         print(f"{res['path']}: {len(dets)} fiducial{'s' if len(dets) != 1 else ''}")
         if not dets:
             continue
-        print("  code  design         u          v  ham  contrast  semi-axes (px)")
+        posed = "position_mm" in dets[0]
+        head = "  code  design         u          v  ham  contrast  semi-axes (px)"
+        print(head + ("        x, y, z (mm)              sd x, y, z (mm)" if posed else ""))
         for d in dets:
             pose = d["ellipses"][0]
-            print(
+            line = (
                 f"  {d['code']:>4}  {d['design']:>6}  {d['center_px'][0]:9.3f}  "
                 f"{d['center_px'][1]:9.3f}  {d['hamming']:>3}  {d['contrast']:8.3f}  "
-                f"{pose['semi_major']:.2f} x {pose['semi_minor']:.2f}"
+                f"{pose['semi_major']:6.2f} x {pose['semi_minor']:6.2f}"
             )
+            if posed:
+                line += "  " + _triple(d["position_mm"], 8, 2) + "  " + _triple(d["sigma_mm"], 6, 3)
+            print(line)
+
+
+def _triple(values: list[float] | None, width: int, decimals: int) -> str:
+    """Three numbers for the table (``-`` where the pose could not be estimated)."""
+    if values is None or any(v is None for v in values):
+        return f"{'-':>{3 * width + 4}}"
+    return ", ".join(f"{v:{width}.{decimals}f}" for v in values)
 
 
 def run(args: argparse.Namespace) -> int:

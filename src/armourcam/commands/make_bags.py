@@ -26,8 +26,19 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--out", type=Path, default=Path("bags"), help="directory (default bags)")
     p.add_argument("--large", action="store_true", help="also write the 6 MP version")
-    p.add_argument("--seed", type=int, default=9, help="field seed (default 9)")
+    p.add_argument("--seed", type=_seed, default=9, help="field seed (default 9)")
     p.set_defaults(func=run)
+
+
+def _seed(text: str) -> int:
+    """argparse type: a non-negative integer seed."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a non-negative integer, got {text!r}")
+    return value
 
 
 def _size(path: Path) -> int:

@@ -20,7 +20,9 @@ def register(subparsers: Any) -> None:
             "or one target as a grayscale PNG at the given dpi (-o NAME.png, exactly one code)."
         ),
     )
-    parser.add_argument("--design", choices=sorted(DESIGNS), default="dot", help="fiducial design")
+    parser.add_argument(
+        "--design", choices=sorted(DESIGNS), default="dot", help="fiducial design (default dot)"
+    )
     parser.add_argument(
         "--codes", default="0-63", help="codes to print, e.g. '0-63' or '3,5,10-12' (default 0-63)"
     )
