@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import math
 import os
 import signal
 import subprocess
@@ -202,8 +203,8 @@ def declare_parameters(node: Node, params: Sequence[Param]) -> dict[str, Any]:
     Raises
     ------
     GraphError
-        A value has the wrong type, is not among the choices or is below the minimum; the
-        message names the node, the parameter and the value.
+        A value has the wrong type, is not finite, is not among the choices or is below the
+        minimum; the message names the node, the parameter and the value.
     """
     values: dict[str, Any] = {}
     for p in params:
@@ -228,6 +229,11 @@ def declare_parameters(node: Node, params: Sequence[Param]) -> dict[str, Any]:
             raise GraphError(
                 f"{node.get_name()}: parameter {p.name} must be {type(p.default).__name__}, "
                 f"got {value!r}"
+            )
+        if isinstance(value, float) and not math.isfinite(value):
+            # NaN slips past every comparison below, infinity past the minimum.
+            raise GraphError(
+                f"{node.get_name()}: parameter {p.name} must be a finite number, got {value!r}"
             )
         if p.choices and value not in p.choices:
             raise GraphError(

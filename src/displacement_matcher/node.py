@@ -319,8 +319,11 @@ class DisplacementMatcherNode(Node):
             events += self.session.set_run_id(self._historic["run_id"][0])
         if "active" in self._historic:
             active, source_ns = self._historic["active"]
-            if active:  # a run is in progress: the coming stop must be measured
-                events += self.session.set_run_active(True, source_ns * 1e-9)
+            # A run in progress: the coming stop must be measured. A stop published while this
+            # node was down ends the run it resumed from data_dir (else that run would wait for
+            # a stop already given, and the next run id would rename it).
+            if active or self.session.phase == Phase.RUN_ACTIVE:
+                events += self.session.set_run_active(active, source_ns * 1e-9)
         self._historic.clear()
         if events:
             self._handle(events)

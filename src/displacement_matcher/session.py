@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import enum
 import json
+import os
 import re
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -337,6 +338,7 @@ class Session:
         self._window = _Window(max(config.baseline_frames, config.settle_frames))
         self.phase = Phase.WAITING_BASELINE
         if config.data_dir is not None:
+            _check_data_dir(Path(config.data_dir))
             self._load(Path(config.data_dir))
         if self.baseline is not None and self.phase == Phase.WAITING_BASELINE:
             self.phase = Phase.MONITORING
@@ -752,6 +754,17 @@ def _read_json(path: Path) -> dict[str, Any]:
     if not isinstance(doc, dict) or doc.get("format") != FORMAT_VERSION:
         raise SessionError(f"{path}: not an armourcam session record (format {FORMAT_VERSION})")
     return doc
+
+
+def _check_data_dir(path: Path) -> None:
+    """Create ``path`` if needed; a SessionError naming it where it cannot hold the session's
+    files (a file of that name, no permission): found at start-up, not at the first save."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise SessionError(f"data_dir {path}: {err.strerror or err}") from err
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise SessionError(f"data_dir {path}: not writable")
 
 
 def write_json_atomic(path: Path, doc: Any) -> None:

@@ -464,3 +464,15 @@ def test_memory_holds_the_latest_runs_and_the_disk_all_of_them(
     again = make(tmp_path, baseline_frames=2, settle_frames=2)
     assert again.runs_completed == n and len(again.runs) == RUNS_IN_MEMORY
     assert again.status()["runs_completed"] == str(n)
+
+
+def test_an_unusable_data_dir_is_refused_at_start(tmp_path: Path) -> None:
+    """A data_dir that is a file cannot hold the baseline: refused when the session starts,
+    naming it, rather than at the first save in the middle of a run."""
+    taken = tmp_path / "afile"
+    taken.write_text("x")
+    with pytest.raises(SessionError, match=f"data_dir {taken}"):
+        Session(SessionConfig(data_dir=taken))
+    fresh = tmp_path / "new" / "dir"
+    Session(SessionConfig(data_dir=fresh))
+    assert fresh.is_dir()

@@ -95,3 +95,16 @@ def test_bad_frames_are_dropped_and_the_node_stays_up(nodes: Nodes, probe: Probe
     assert raw_log.count("dropped") == 4, raw_log
     assert "weird42" in raw_log
     assert jpeg_log.count("dropped") == 2, jpeg_log
+
+
+def test_a_non_finite_parameter_stops_the_node_at_start_up(nodes: Nodes) -> None:
+    """NaN passes every comparison and infinity the minimum: both are refused at start-up with
+    one line naming the parameter (exit 2), not taken in to drop every frame or crash later."""
+    for label, params in (
+        ("nan", {"diameter_mm": ".nan"}),
+        ("inf", {"diagnostics_period_s": ".inf"}),
+    ):
+        proc = nodes.start("pose_estimator", params=params, label=label)
+        assert proc.wait(timeout=30) == 2, nodes.log(label)
+        (name,) = params
+        assert f"parameter {name} must be a finite number" in nodes.log(label)

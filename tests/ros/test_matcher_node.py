@@ -11,6 +11,7 @@ from rosutil import Nodes, Probe
 
 from armourcam import records
 from armourcam.graph import event_qos, latched_qos, record_qos
+from displacement_matcher.session import SESSION_STATE_FILE
 from pose_estimator.types import FiducialPose
 
 POSES = "/armourcam/poses"
@@ -173,3 +174,46 @@ def test_late_subscriber_gets_latched_report_and_markers_and_state_survives_rest
     ]
     assert len(cum) == 8  # run 1's unit and run 2's, both against the same baseline
     assert nodes.alive("matcher2")
+
+
+def test_a_stop_published_while_the_matcher_is_down_ends_the_resumed_run(
+    nodes: Nodes, probe: Probe, tmp_path: Path
+) -> None:
+    """The matcher dies during a run; the hall stops the run meanwhile (latched). Restarted, it
+    resumes the run from data_dir, takes the historic stop, settles on the next frames and
+    reports the run under its own id (it used to wait for a stop already given)."""
+    from std_msgs.msg import Bool, String
+
+    data = tmp_path / "data"
+    nodes.start("displacement_matcher", params=matcher_params(data))
+    hall = Hall(probe)
+    assert hall.wait_matched(), nodes.log("displacement_matcher")
+    probe.spin_for(0.5)
+    truth0 = field()
+    hall.frames(truth0, 3)  # -> automatic baseline
+    assert probe.spin_until(lambda: (data / "baseline.json").exists(), 20.0)
+    hall.run_id.publish(String(data="wave-K"))
+    hall.active.publish(Bool(data=True))
+    state = data / SESSION_STATE_FILE
+    assert probe.spin_until(
+        lambda: state.exists() and json.loads(state.read_text())["run_id"] == "wave-K", 20.0
+    ), nodes.log("displacement_matcher")
+    assert nodes.stop("displacement_matcher") == 0
+    hall.active.publish(Bool(data=False))  # while the matcher is down
+    probe.spin_for(0.5)
+    nodes.start("displacement_matcher", params=matcher_params(data), label="matcher2")
+    late = Latched(probe)
+    assert probe.spin_until(lambda: hall.poses.get_subscription_count() > 0, 20.0)
+    probe.spin_for(1.5)  # the historic hall state is applied half a second after start
+    truth1 = truth0.copy()
+    truth1[:4] += [10.0, 0.0, 0.0]
+    for _ in range(4):
+        hall.frames(truth1, 3)
+        if probe.spin_until(lambda: any(r["run_id"] == "wave-K" for r in late.reports), 2.0):
+            break
+    assert any(r["run_id"] == "wave-K" for r in late.reports), nodes.log("matcher2")
+    rep = next(r for r in late.reports if r["run_id"] == "wave-K")
+    assert (
+        rep["sequence"] == 1
+        and rep["summary"]["moved_units"] + rep["summary"]["displaced_units"] >= 1
+    )
