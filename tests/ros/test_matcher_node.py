@@ -103,16 +103,22 @@ def matcher_params(data_dir: Path) -> dict[str, Any]:
     return {"data_dir": str(data_dir), "baseline_frames": 3, "settle_frames": 3}
 
 
-def test_late_subscriber_gets_latched_report_and_markers_and_state_survives_restart(
-    nodes: Nodes, probe: Probe, tmp_path: Path
-) -> None:
-    data = tmp_path / "data"
+def _matcher_with_baseline(nodes: Nodes, probe: Probe, data: Path) -> tuple[Hall, np.ndarray]:
+    """A matcher keeping ``data``, fed baseline frames of :func:`field` (automatic baseline)."""
     nodes.start("displacement_matcher", params=matcher_params(data))
     hall = Hall(probe)
     assert hall.wait_matched(), nodes.log("displacement_matcher")
     probe.spin_for(0.5)
     truth0 = field()
     hall.frames(truth0, 3)  # -> automatic baseline
+    return hall, truth0
+
+
+def test_late_subscriber_gets_latched_report_and_markers_and_state_survives_restart(
+    nodes: Nodes, probe: Probe, tmp_path: Path
+) -> None:
+    data = tmp_path / "data"
+    hall, truth0 = _matcher_with_baseline(nodes, probe, data)
     truth1 = truth0.copy()
     truth1[:4] += [10.0, 0.0, 0.0]  # one unit moves 10 mm
     hall.run("wave-A", truth1)
@@ -185,12 +191,7 @@ def test_a_stop_published_while_the_matcher_is_down_ends_the_resumed_run(
     from std_msgs.msg import Bool, String
 
     data = tmp_path / "data"
-    nodes.start("displacement_matcher", params=matcher_params(data))
-    hall = Hall(probe)
-    assert hall.wait_matched(), nodes.log("displacement_matcher")
-    probe.spin_for(0.5)
-    truth0 = field()
-    hall.frames(truth0, 3)  # -> automatic baseline
+    hall, truth0 = _matcher_with_baseline(nodes, probe, data)
     assert probe.spin_until(lambda: (data / "baseline.json").exists(), 20.0)
     hall.run_id.publish(String(data="wave-K"))
     hall.active.publish(Bool(data=True))
