@@ -175,7 +175,7 @@ def match_units(
             if u.n_matched == 1:
                 lone.update((i, pair_of[i]) for i in u.baseline_indices if i in pair_of)
         # Units seen in place, for the template's rules (found once per pass).
-        still = _units_in_place(units, baseline, current, pair_of) if template is not None else []
+        still = _whole_in_place(units, baseline, current, pair_of) if template is not None else []
         covered = (
             _still_neighbours_faces(baseline, current, still, template, span, lone)
             if template is not None
@@ -489,7 +489,7 @@ def _unit_conflicts(
     }
     # Baseline units every fiducial of which is matched where it was.
     match_of = {i: j for j, i in pair_of.items()}
-    in_place = {
+    whole_in_place = {
         n
         for n, (_, ix) in enumerate(base_units)
         if all(
@@ -508,7 +508,7 @@ def _unit_conflicts(
         if len(winners) != 1:
             continue
         for (i, j), o in zip(members, owners, strict=True):
-            if o != winners[0] and o not in in_place:
+            if o != winners[0] and o not in whole_in_place:
                 out.add((i, j))
     return out
 
@@ -552,7 +552,7 @@ def _neighbour_faces_taken(
     positions within 5 mm RMS, normals within 30 deg), the fiducial is that neighbour's newly
     seen face and the pair is ruled out. A mover that landed beside a neighbour keeps its
     claim unless its face sits exactly where one of the neighbour's would
-    (:func:`_fits_template`). ``still``: :func:`_units_in_place` of ``units``; ``match_of``:
+    (:func:`_fits_template`). ``still``: :func:`_whole_in_place` of ``units``; ``match_of``:
     the result's pairs, baseline -> current index.
     """
     base, cur = result.baseline, result.current
@@ -599,7 +599,7 @@ def _still_neighbours_faces(
     one of its matches still, across the line of sight) and the template fitted to its own
     baseline faces (:func:`template_pose`) puts its face of that code, missing from them,
     where the fiducial is seen (within :data:`STILL_SHOWN_MM` across the line of sight), the
-    fiducial is that face. ``still``: the units seen in place (:func:`_units_in_place`).
+    fiducial is that face. ``still``: the units seen in place (:func:`_whole_in_place`).
     Returns the baseline indices of such pairs."""
     out: set[int] = set()
     if not lone:
@@ -639,7 +639,7 @@ def _lacks_code_near(
     return bool(np.min(near) <= span_mm)
 
 
-def _units_in_place(
+def _whole_in_place(
     units: Sequence[UnitMotion],
     baseline: Sequence[FiducialPose],
     current: Sequence[FiducialPose],

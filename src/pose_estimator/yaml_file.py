@@ -22,7 +22,8 @@ def load_yaml(path: str | Path) -> Any:
     Raises
     ------
     YamlFileError
-        If the file cannot be read, or is not valid YAML: ``"PATH: line L, column C: problem"``.
+        If the file cannot be read (``"PATH: reason"``), or is not valid YAML (``"PATH: not
+        valid YAML at line L, column C: problem"``).
     """
     try:
         text = Path(path).read_text()

@@ -13,7 +13,8 @@ import math
 import sys
 from typing import Any
 
-from .detect import add_decimate_option
+from ..imageio import ImageReadError
+from .detect import add_decimate_option, read_for_camera
 
 DEFAULT_DN_MM = 20.5  # a 38 mm dolos (Dn ~ 0.54 H)
 
@@ -68,22 +69,15 @@ def register(subparsers: Any) -> None:
 def _readable(paths: list[str], camera: Any, failed: list[str]) -> tuple[list[str], list[Any]]:
     """The images of one state that can be read and fit the calibration (with their paths);
     one line naming the file and the problem per other file, appended to ``failed``."""
-    from pose_estimator.errors import CalibrationError
-
-    from ..imageio import ImageReadError, read_image
-
     used: list[str] = []
     images: list[Any] = []
     for path in paths:
         try:
-            image = read_image(path)
-            camera.check_image_size(image.shape[1], image.shape[0])
-        except (ImageReadError, CalibrationError) as err:
-            message = str(err)
-            failed.append(message if message.startswith(path) else f"{path}: {message}")
+            images.append(read_for_camera(path, camera))
+        except ImageReadError as err:
+            failed.append(str(err))
             continue
         used.append(path)
-        images.append(image)
     return used, images
 
 

@@ -165,6 +165,18 @@ def add_decimate_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def read_for_camera(path: str, camera: CameraModel | None) -> Any:
+    """:func:`armourcam.imageio.read_image`, then the calibration's image-size check: every
+    failure an :class:`ImageReadError` whose one line names the file."""
+    image = read_image(path)
+    if camera is not None:
+        try:
+            camera.check_image_size(image.shape[1], image.shape[0])
+        except CalibrationError as err:
+            raise ImageReadError(f"{path}: {err}") from err
+    return image
+
+
 def detect_file(
     path: str,
     design: str,
@@ -179,9 +191,7 @@ def detect_file(
     camera each detection gets its pose (:func:`pose_estimator.estimate`, refined by
     :func:`pose_estimator.image_fit.refine_from_image` when ``image_fit``)."""
     try:
-        image = read_image(path)
-        if camera is not None:
-            camera.check_image_size(image.shape[1], image.shape[0])
+        image = read_for_camera(path, camera)
         found = detect(
             image,
             design=design,  # type: ignore[arg-type]
