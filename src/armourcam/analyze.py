@@ -110,7 +110,6 @@ def analyze_bag(
 
     if not (diameter_mm > 0 and math.isfinite(diameter_mm)):
         raise AnalyzeError(f"diameter must be a positive number of mm, got {diameter_mm}")
-    out_dir.mkdir(parents=True, exist_ok=True)
     markers_path = out_dir / "markers"
     if markers_path.exists():
         raise AnalyzeError(f"{markers_path} exists; choose an empty output directory")
@@ -135,6 +134,8 @@ def analyze_bag(
         wanted = [t for t in (img_topic, cam_topic, active_topic, id_topic, cap_topic) if t]
         total = sum(bag.topics[t].count for t in wanted)
         camera = calibration
+        # Only now, with the bag's topics checked: a refused request leaves no empty directory.
+        out_dir.mkdir(parents=True, exist_ok=True)
         with bagio.BagWriter(markers_path) as out:
             frame_id = ""
 
@@ -212,11 +213,13 @@ def write_reports(out_dir: Path, bag_path: Path, result: AnalysisResult) -> None
     """``report.json`` and one ``runs/<NNNN>-<run_id>.json`` per run."""
     runs_dir = out_dir / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
+    # Each run's file stands alone: it names the bag and topics it was measured from.
+    inputs = {"bag": str(bag_path), "topics": result.topics}
     for run in result.runs:
         safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in run.run_id)
         write_atomic(
             runs_dir / f"{run.sequence:04d}-{safe}.json",
-            json.dumps(_json_safe(run.report), indent=1).encode(),
+            json.dumps(_json_safe({**run.report, "inputs": inputs}), indent=1).encode(),
         )
     doc = {
         "bag": str(bag_path),

@@ -32,8 +32,10 @@ Writing:
   ``write_image``, ``write_compressed_image``, ``write_camera_info``, ``write_records`` (PointCloud2
   rows), ``write_record_array`` (e.g. ``FiducialPoseArray``), ``write_string``, ``write_bool``,
   ``write_empty``, ``write_raw`` (CDR bytes as received); ``new(msgtype, **fields)``,
-  ``header(stamp_ns, frame_id)``; ``latched=True`` records TRANSIENT_LOCAL QoS for a topic
-  (read back as ``TopicInfo.latched``).
+  ``header(stamp_ns, frame_id)``; ``add_topic(topic, msgtype, *, latched=False,
+  offered_qos=())``: ``latched=True`` records TRANSIENT_LOCAL QoS for a topic (read back as
+  ``TopicInfo.latched``), ``offered_qos`` the QoS profiles its publishers offered.
+- :func:`qos_from_profile` ``(profile)`` -> rosbags ``Qos`` (from an rclpy ``QoSProfile``).
 - :func:`armourcam_typestore` ``()`` -> rosbags ``Typestore`` (Kilted + armourcam types).
 
 Conversions:
@@ -1042,16 +1044,35 @@ class BagWriter:
         stamp = self.new("builtin_interfaces/msg/Time", **ns_to_stamp_fields(stamp_ns))
         return self.new("std_msgs/msg/Header", stamp=stamp, frame_id=frame_id)
 
-    def add_topic(self, topic: str, msgtype: str, *, latched: bool = False) -> Any:
+    def add_topic(
+        self,
+        topic: str,
+        msgtype: str,
+        *,
+        latched: bool = False,
+        offered_qos: Sequence[Any] = (),
+    ) -> Any:
         """Register ``topic`` (done implicitly by the ``write*`` methods); returns the connection.
 
-        ``latched`` records a RELIABLE + TRANSIENT_LOCAL offered QoS (as the matcher's latched
-        outputs have), so a replayer can republish it the same way.
+        Parameters
+        ----------
+        topic, msgtype : str
+        latched : bool
+            Record a RELIABLE + TRANSIENT_LOCAL, depth 1 offered QoS (as the matcher's latched
+            outputs have), read back as ``TopicInfo.latched`` so a replayer republishes the topic
+            latched.
+        offered_qos : sequence
+            The QoS profiles the topic's publishers offered, one per publisher, stored in the
+            bag's metadata as ``ros2 bag record`` does: rclpy ``QoSProfile`` or rosbags ``Qos``
+            objects (see :func:`qos_from_profile`). Not together with ``latched``.
+
+        Only the first registration of a topic stores QoS; later calls return its connection.
 
         Raises
         ------
         BagError
-            If the topic exists with another type.
+            If the topic exists with another type, both ``latched`` and ``offered_qos`` are
+            given, or a profile is not a QoS profile.
         """
         msgtype = _normal_type(msgtype)
         conn = self._connections.get(topic)
@@ -1061,7 +1082,9 @@ class BagWriter:
             return conn
         if self._writer is None:
             raise BagError(f"bag {self.path} is closed")
-        qos = [_latched_qos()] if latched else []
+        if latched and offered_qos:
+            raise BagError(f"{topic}: give latched or offered_qos, not both")
+        qos = [_latched_qos()] if latched else [qos_from_profile(q) for q in offered_qos]
         conn = self._writer.add_connection(
             topic, msgtype, typestore=self.typestore, offered_qos_profiles=qos
         )
@@ -1259,6 +1282,67 @@ class BagWriter:
         # rosbags gives std_msgs/Empty a placeholder member (IDL structs cannot be empty).
         names = [n for n, _ in self.typestore.fielddefs["std_msgs/msg/Empty"][1]]
         return dict.fromkeys(names, 0)
+
+
+def qos_from_profile(profile: Any) -> Any:
+    """The rosbags ``Qos`` (a bag's ``offered_qos_profiles`` entry) of a QoS profile.
+
+    Parameters
+    ----------
+    profile : object
+        A rosbags ``Qos`` (returned as it is), or read by duck typing like an rclpy
+        ``QoSProfile`` (e.g. from ``Node.get_publishers_info_by_topic``): ``history``,
+        ``reliability``, ``durability``, ``liveliness`` (enums, matched by member name; names
+        rosbags lacks become ``UNKNOWN``), ``depth``, ``deadline``, ``lifespan``,
+        ``liveliness_lease_duration`` (durations with ``nanoseconds``; rclpy's infinite duration
+        becomes 9223372036 s 854775807 ns, rosbag2's infinite) and
+        ``avoid_ros_namespace_conventions``.
+
+    Returns
+    -------
+    rosbags.interfaces.Qos
+
+    Raises
+    ------
+    BagError
+        If ``profile`` lacks one of those attributes.
+    """
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+
+    if isinstance(profile, Qos):
+        return profile
+
+    def policy(enum: Any, value: Any) -> Any:
+        name = getattr(value, "name", None)
+        if isinstance(name, str) and name in enum.__members__:
+            return enum[name]
+        return enum.UNKNOWN
+
+    def duration(value: Any) -> QosTime:
+        sec, nsec = divmod(int(getattr(value, "nanoseconds", value)), 1_000_000_000)
+        return QosTime(sec, nsec)
+
+    try:
+        return Qos(
+            policy(QosHistory, profile.history),
+            int(profile.depth),
+            policy(QosReliability, profile.reliability),
+            policy(QosDurability, profile.durability),
+            duration(profile.deadline),
+            duration(profile.lifespan),
+            policy(QosLiveliness, profile.liveliness),
+            duration(profile.liveliness_lease_duration),
+            bool(profile.avoid_ros_namespace_conventions),
+        )
+    except (AttributeError, TypeError, ValueError) as err:
+        raise BagError(f"not a QoS profile: {profile!r} ({err})") from err
 
 
 def _latched_qos() -> Any:

@@ -8,7 +8,7 @@ With the three ``*/node.py`` modules this is the only module importing rclpy. It
 - launching: :func:`launch_processes` (each node its own process, own process group) and
   :func:`run_one_process` (all three nodes in one process on one executor);
 - :class:`Replayer` (``armourcam replay``): publishes a bag's images, camera info and hall topics;
-- :class:`Recorder` (``armourcam record``): writes the graph's topics to an MCAP bag.
+- :func:`record_topics` (``armourcam record``): writes the graph's topics to an MCAP bag.
 
 QoS names used throughout: ``reliable`` (RELIABLE, VOLATILE, KEEP_LAST depth; replay, nothing
 lost while queues keep up) and ``sensor_data`` (BEST_EFFORT, VOLATILE, KEEP_LAST depth; a live
@@ -112,6 +112,69 @@ def publish_diagnostics(
     arr = DiagnosticArray(status=[status])
     arr.header.stamp = node.get_clock().now().to_msg()
     publisher.publish(arr)
+
+
+_LEVEL_RANK = {"ok": 0, "warn": 1, "error": 2}
+
+
+class RecentProblems:
+    """A node's problems for its diagnostics: each shows in the level while it is recent.
+
+    A dropped frame or a failed save is a passing event, not a state: once ``hold_s`` seconds
+    pass without another, the node's level returns to OK (a rig's monitoring sees it recover),
+    while the counters in the diagnostics values stay cumulative and the last problem stays
+    named there (``last_problem``, ``last_problem_age_s``).
+
+    Parameters
+    ----------
+    hold_s : float
+        Seconds a problem keeps the level raised.
+    clock : callable, optional
+        Monotonic seconds (tests pass their own).
+    """
+
+    def __init__(self, hold_s: float = 30.0, clock: Callable[[], float] = time.monotonic) -> None:
+        if not (hold_s > 0 and math.isfinite(hold_s)):
+            raise GraphError(f"problem hold time must be > 0 s, got {hold_s}")
+        self.hold_s = float(hold_s)
+        self._clock = clock
+        self._last: dict[str, tuple[str, float]] = {}  # level -> (text, when)
+        self.last_text = ""
+        self._last_t: float | None = None
+
+    def report(self, level: str, text: str) -> None:
+        """Note a problem of ``level`` ``"warn"`` or ``"error"``."""
+        if level not in ("warn", "error"):
+            raise GraphError(f"problem level must be warn or error, got {level!r}")
+        now = self._clock()
+        self._last[level] = (text, now)
+        self.last_text, self._last_t = text, now
+
+    def level(self) -> str:
+        """``"error"``, ``"warn"`` or ``"ok"``: the worst problem within ``hold_s``."""
+        return self._recent()[0]
+
+    def message(self) -> str:
+        """The worst recent problem's text, ``""`` when there is none."""
+        return self._recent()[1]
+
+    def values(self) -> dict[str, str]:
+        """``last_problem`` and its age in seconds (empty strings before the first)."""
+        age = "" if self._last_t is None else f"{self._clock() - self._last_t:.1f}"
+        return {"last_problem": self.last_text, "last_problem_age_s": age}
+
+    def _recent(self) -> tuple[str, str]:
+        now = self._clock()
+        for level in ("error", "warn"):
+            hit = self._last.get(level)
+            if hit is not None and now - hit[1] <= self.hold_s:
+                return level, hit[0]
+        return "ok", ""
+
+
+def worst_level(*levels: str) -> str:
+    """The most severe of ``"ok"``, ``"warn"`` and ``"error"`` levels."""
+    return max(levels, key=_LEVEL_RANK.__getitem__, default="ok")
 
 
 class FrameTimes:
@@ -219,6 +282,7 @@ def declare_parameters(node: Node, params: Sequence[Param]) -> dict[str, Any]:
             description=p.description + extra,
             read_only=p.read_only,
         )
+        _float_override(node, p)
         try:
             value = node.declare_parameter(p.name, p.default, desc).value
         except Exception as err:  # rclpy raises several types for a mistyped YAML value
@@ -245,6 +309,22 @@ def declare_parameters(node: Node, params: Sequence[Param]) -> dict[str, Any]:
             )
         values[p.name] = value
     return values
+
+
+def _float_override(node: Node, p: Param) -> None:
+    """An integer given for a float parameter (``diameter_mm: 7`` in a params file, ``-p
+    dn_mm:=20``) is taken as that float: rclpy would refuse it as the wrong type, while YAML
+    and a person both mean the number. rclpy keeps the overrides in a private mapping; without
+    it the value reaches rclpy unchanged (and is refused, naming the parameter)."""
+    overrides = getattr(node, "_parameter_overrides", None)
+    if not isinstance(p.default, float) or not isinstance(overrides, dict):
+        return
+    given = overrides.get(p.name)
+    value = getattr(given, "value", None)
+    if isinstance(value, int) and not isinstance(value, bool):
+        from rclpy.parameter import Parameter
+
+        overrides[p.name] = Parameter(p.name, value=float(value))
 
 
 def param_table(params: Sequence[Param]) -> str:
@@ -301,6 +381,9 @@ def _run_nodes(
     A node whose parameters are invalid raises :class:`GraphError` in its constructor; that ends
     the process with status 2 and a one-line error, before any topic is touched.
     """
+    if not end_with_launcher():
+        print("error: the launcher that started this node has already exited", file=sys.stderr)
+        return 1
     use_dds_profile()
     keep_freed_memory()  # per-frame temporaries stay in the process (armourcam.heap)
     rclpy.init(args=list(argv))
@@ -371,6 +454,31 @@ def node_command(
     return cmd + list(ros_args)
 
 
+#: Set by :func:`launch_processes` in each node's environment: the launcher's process id.
+LAUNCHER_PID_ENV = "ARMOURCAM_LAUNCHER_PID"
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def end_with_launcher() -> bool:
+    """In a node started by :func:`launch_processes`, ask the kernel for SIGTERM when the
+    launcher dies, however it dies (SIGKILL, a closed terminal's SIGHUP, a crash): the nodes
+    run in their own sessions (so a Ctrl-C reaches them through the launcher, in order), and
+    would otherwise live on unseen. SIGTERM then stops the node cleanly (rclpy's handler).
+
+    Returns False when the launcher is already gone (it died before the request), True
+    otherwise, and also for a process not started by the launcher or off Linux.
+    """
+    launcher = os.environ.pop(LAUNCHER_PID_ENV, "")
+    if not launcher.isdigit() or not sys.platform.startswith("linux"):
+        return True
+    import ctypes
+
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    # Reparented already: the launcher died before the request could cover it.
+    return os.getppid() == int(launcher)
+
+
 #: CPU niceness of nodes started by :func:`launch_processes`. The matcher's work at the end of a
 #: run (fusing, matching, unit motions, the report: about half a second of one core) is not
 #: urgent, while every frame's detection and pose are: on a two-core rig the matcher yields.
@@ -388,13 +496,15 @@ def launch_processes(
 ) -> dict[str, subprocess.Popen[bytes]]:
     """Start each node as its own process, each in its own process group.
 
-    The nodes get one BLAS thread each (:mod:`armourcam.blas`) unless ``env`` says otherwise.
+    The nodes end when this process does, however it ends (:func:`end_with_launcher`). The
+    nodes get one BLAS thread each (:mod:`armourcam.blas`) unless ``env`` says otherwise.
     Output goes to ``log_dir/<node>.log`` when given (else inherited). ``niceness`` (default
     :data:`NICENESS`) lowers the CPU priority of the named nodes by that much. Stop them with
     :func:`stop_processes`.
     """
     niceness = NICENESS if niceness is None else niceness
     child_env = one_blas_thread(dict(env if env is not None else os.environ))
+    child_env[LAUNCHER_PID_ENV] = str(os.getpid())  # the nodes end with us (end_with_launcher)
     procs: dict[str, subprocess.Popen[bytes]] = {}
     try:
         for name in nodes:
@@ -480,8 +590,8 @@ class Replayer:
     node : Node
         The replay's node.
     qos : {"reliable", "sensor_data"}
-        QoS of the per-frame streams (images, camera info); hall topics (``std_msgs``) are
-        always reliable and transient-local.
+        QoS of the per-frame streams (images, camera info, the graph's record streams); see
+        :meth:`qos` for each kind of topic.
     depth : int
         KEEP_LAST depth of the per-frame publishers.
     confirm_topic : str or None
@@ -551,16 +661,41 @@ class Replayer:
             self._downstream.discard(key)
         return True
 
-    def publisher(self, topic: str, msgtype: str) -> Any:
-        """The publisher for ``topic`` (created on first use with the right QoS)."""
+    def qos(self, msgtype: str, *, latched: bool = False) -> QoSProfile:
+        """QoS a topic of type ``msgtype`` is republished with, matching every subscriber the
+        graph has for it.
+
+        - hall topics (``std_msgs``): :func:`event_qos` (reliable, transient-local);
+        - images and camera info: :func:`stream_qos`, VOLATILE even if ``latched`` (a
+          transient-local history of ``depth`` 6 MP frames would hold gigabytes);
+        - the graph's record streams (``PointCloud2``): :func:`record_qos`, whose
+          TRANSIENT_LOCAL (in ``reliable`` mode) matches volatile and transient-local readers
+          alike (the pose estimator and the matcher subscribe transient-local); ``latched``:
+          reliable and transient-local whatever ``qos``;
+        - other ``latched`` topics (the bag recorded a TRANSIENT_LOCAL offered QoS, as for the
+          matcher's markers): :func:`latched_qos`, as the matcher publishes them;
+        - anything else: :func:`stream_qos`.
+        """
+        if msgtype.count("/") == 1:  # ROS 1 spelling pkg/Name
+            msgtype = msgtype.replace("/", "/msg/", 1)
+        if msgtype.startswith("std_msgs/"):
+            return event_qos()
+        if msgtype in (*IMAGE_TYPES, "sensor_msgs/msg/CameraInfo"):
+            return stream_qos(self.qos_name, self.depth)
+        if msgtype == "sensor_msgs/msg/PointCloud2":
+            return record_qos("reliable" if latched else self.qos_name, self.depth)
+        if latched:
+            return latched_qos()
+        return stream_qos(self.qos_name, self.depth)
+
+    def publisher(self, topic: str, msgtype: str, *, latched: bool = False) -> Any:
+        """The publisher for ``topic``, created on first use with :meth:`qos` (``latched``: the
+        bag recorded the topic TRANSIENT_LOCAL, see ``bagio.TopicInfo.latched``)."""
         pub = self._pubs.get(topic)
         if pub is None:
-            cls = message_class(msgtype)
-            if msgtype.startswith("std_msgs/"):
-                qos = event_qos()
-            else:
-                qos = stream_qos(self.qos_name, self.depth)
-            pub = self.node.create_publisher(cls, topic, qos)
+            pub = self.node.create_publisher(
+                message_class(msgtype), topic, self.qos(msgtype, latched=latched)
+            )
             self._pubs[topic] = pub
         return pub
 
@@ -681,6 +816,7 @@ def replay_bag(
         if messages is not None:
             listed = list(_plan(messages(), remap))
             topics = {t: mt for t, mt, _, _ in listed}
+            latched: set[str] = set()  # no metadata to tell
             total = len(listed)
             items: Iterator[tuple[str, str, int, Any]] = iter(listed)
         else:
@@ -689,12 +825,14 @@ def replay_bag(
                     raise GraphError(f"{bag}: the bag holds no messages")
                 infos = [i for i in b.topics.values() if remap.get(i.topic, i.topic)]
             topics = {remap.get(i.topic, i.topic): i.msgtype for i in infos}
+            # Recorded with a TRANSIENT_LOCAL offered QoS: republished latched (Replayer.qos).
+            latched = {remap.get(i.topic, i.topic) for i in infos if i.latched}
             total = sum(i.count for i in infos)
             items = _plan(_bag_messages(bag), remap)
         # Create every publisher first and wait for the graph to match them, so that the first
         # frames are not published into the void.
         for topic, msgtype in topics.items():
-            replayer.publisher(topic, msgtype)
+            replayer.publisher(topic, msgtype, latched=topic in latched)
         waited = [t for t, mt in topics.items() if not mt.startswith("std_msgs/")]
         missing = replayer.wait_for_subscribers(sorted(set(waited)), wait_subscribers)
         missing += replayer.wait_for_graph(list(wait_for), wait_subscribers)
@@ -791,9 +929,14 @@ def record_topics(
 ) -> dict[str, int]:
     """Record ``topics`` (types discovered from the graph) into an MCAP bag until stopped.
 
-    Messages are stored as received (CDR, no deserialisation). Latched topics are subscribed
-    TRANSIENT_LOCAL so their last message is recorded even if published before the recorder
-    started. Returns message counts per topic.
+    A topic is subscribed once a publisher of it is discovered (a topic that only has
+    subscribers, or never appears, is not recorded), with a QoS that matches every publisher
+    discovered then (:func:`_recording_qos`: best effort if any is, so a live camera at
+    ``sensor_data`` is recorded; transient-local if all are, so a latched message published
+    before the recorder started is recorded too). Publishers that appear later with a stricter
+    QoS are not matched, as with ``ros2 bag record``. The publishers' offered QoS profiles are
+    stored in the bag's metadata, so a replay republishes latched topics latched. Messages are
+    stored as received (CDR bytes, not decoded). Returns message counts per topic.
     """
     from armourcam import bagio
 
@@ -811,26 +954,25 @@ def record_topics(
             t_end = None if duration is None else time.monotonic() + duration
             while not stop.is_set():
                 if pending:
-                    types = dict(node.get_topic_names_and_types())
+                    listed = dict(node.get_topic_names_and_types())
                     for topic in sorted(pending):
-                        if topic not in types:
-                            continue
-                        msgtype = types[topic][0]
-                        latched = any(
-                            i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
-                            for i in node.get_publishers_info_by_topic(topic)
-                        )
-                        qos = latched_qos(10) if latched else stream_qos("reliable", 100)
-                        writer.add_topic(topic, msgtype, latched=latched)
+                        infos = node.get_publishers_info_by_topic(topic) if topic in listed else []
+                        if not infos:
+                            continue  # no publisher yet: its QoS decides the subscription's
+                        msgtype = infos[0].topic_type
+                        offered = [i.qos_profile for i in infos if i.topic_type == msgtype]
+                        writer.add_topic(topic, msgtype, offered_qos=offered)
 
                         def cb(raw: bytes, topic: str = topic, msgtype: str = msgtype) -> None:
-                            # Stored via the bag's typestore: CDR in, CDR out.
-                            obj = writer.typestore.deserialize_cdr(raw, msgtype)
+                            # Stored as received: the CDR bytes rosbag2 would store (a 6 MP
+                            # frame is not decoded and encoded again).
                             with lock:
-                                writer.write(topic, msgtype, obj, time.time_ns())
+                                writer.write_raw(topic, msgtype, raw, time.time_ns())
                                 counts[topic] += 1
 
-                        node.create_subscription(message_class(msgtype), topic, cb, qos, raw=True)
+                        node.create_subscription(
+                            message_class(msgtype), topic, cb, _recording_qos(offered), raw=True
+                        )
                         pending.discard(topic)
                 executor.spin_once(timeout_sec=0.1)
                 if t_end is not None and time.monotonic() > t_end:
@@ -842,3 +984,20 @@ def record_topics(
         node.destroy_node()
         rclpy.try_shutdown()
     return counts
+
+
+def _recording_qos(offered: Sequence[QoSProfile], depth: int = 100) -> QoSProfile:
+    """A subscription QoS that matches every publisher offering one of ``offered``.
+
+    RELIABLE only if every publisher is reliable (a reliable reader does not match a
+    best-effort writer), TRANSIENT_LOCAL only if every publisher is (a transient-local reader
+    does not match a volatile writer); KEEP_LAST ``depth``.
+    """
+    reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
+    latched = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    )

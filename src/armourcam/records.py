@@ -916,9 +916,12 @@ def estimate_pose_records(
     ------
     RecordError
         For malformed detection records (see :func:`detection_ellipse_columns`).
+    CalibrationError
+        If a detection lies outside the camera's image (:meth:`CameraModel.check_pixels`).
     """
     recs = _as_records(DETECTION, detection_records)
     values, covs = detection_ellipse_columns(recs)
+    camera.check_pixels(recs["u"], recs["v"])
     result = estimate_ellipses(values, covs, 0.5 * float(diameter_mm), camera)
     keep = np.flatnonzero(result.valid)
     return pose_columns_to_records(

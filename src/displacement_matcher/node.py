@@ -32,7 +32,10 @@ Published (latched: RELIABLE + TRANSIENT_LOCAL, depth 1, so a late subscriber ge
     ``baseline_topic`` (default ``/armourcam/baseline``), ``sensor_msgs/PointCloud2`` of the
     fused baseline's ``FiducialPoseRecord`` rows.
     ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray`` (reliable, volatile) every
-    ``diagnostics_period_s`` and on every state change: phase, run, baseline, counts.
+    ``diagnostics_period_s`` and on every state change: phase, run, baseline, counts. ERROR
+    while files could not be saved to ``data_dir`` (kept in memory, retried at every save) and
+    for 30 s after a run's error, WARN before the baseline and for 30 s after a warning or a
+    dropped frame (:class:`armourcam.graph.RecentProblems`).
 
 Parameters: see :data:`PARAMS`.
 """
@@ -56,6 +59,7 @@ from armourcam import records
 from armourcam.graph import (
     GraphError,
     Param,
+    RecentProblems,
     declare_parameters,
     event_qos,
     latched_qos,
@@ -64,6 +68,7 @@ from armourcam.graph import (
     run_node,
     stamp_seconds,
     stream_qos,
+    worst_level,
 )
 
 from .damage import thresholds
@@ -273,7 +278,7 @@ class DisplacementMatcherNode(Node):
             Empty, cfg.capture_baseline_topic, self._on_capture, stream_qos("reliable", 10)
         )
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
-        self.last_error = ""
+        self.problems = RecentProblems()
         s = self.session
         if s.baseline is not None:
             self.get_logger().info(
@@ -292,8 +297,9 @@ class DisplacementMatcherNode(Node):
             poses = records.records_to_poses(records.from_pointcloud2(msg, records.POSE))
         except Exception as err:  # a malformed frame must not take the node down
             self.session.frames_dropped += 1
-            self.last_error = f"pose frame dropped: {err}"
-            self.get_logger().error(self.last_error)
+            text = f"pose frame dropped: {err}"
+            self.problems.report("warn", text)
+            self.get_logger().error(text)
             return
         if msg.header.frame_id:
             self._frame_id = msg.header.frame_id
@@ -356,9 +362,10 @@ class DisplacementMatcherNode(Node):
                 # One call site per severity: rclpy's logger refuses a severity change per site.
                 if ev.level == "error":
                     log.error(ev.text)
-                    self.last_error = ev.text
+                    self.problems.report("error", ev.text)
                 elif ev.level == "warn":
                     log.warning(ev.text)
+                    self.problems.report("warn", ev.text)
                 else:
                     log.info(ev.text)
             elif isinstance(ev, BaselineCaptured):
@@ -375,8 +382,9 @@ class DisplacementMatcherNode(Node):
                 try:
                     self._publish_run(ev.run)
                 except Exception as err:  # the report is on disk; stay up
-                    self.last_error = f"run {ev.run.run_id}: publishing failed: {err}"
-                    log.error(self.last_error)
+                    text = f"run {ev.run.run_id}: publishing failed: {err}"
+                    self.problems.report("error", text)
+                    log.error(text)
         if changed:
             self._publish_diagnostics()
 
@@ -407,18 +415,21 @@ class DisplacementMatcherNode(Node):
 
     def _publish_diagnostics(self) -> None:
         phase = self.session.phase
-        level = "ok"
-        if self.last_error:
-            level = "error"
+        # States (no baseline yet, files not saved) last as long as they hold; problems
+        # (errors of a run, dropped frames) show while recent.
+        level, message = self.problems.level(), self.problems.message()
+        unsaved = self.session.unsaved_paths
+        if unsaved:
+            level, message = "error", f"{len(unsaved)} files not saved to {self.config.data_dir}"
         elif phase in (Phase.WAITING_BASELINE, Phase.CAPTURING_BASELINE):
-            level = "warn"
+            level = worst_level(level, "warn")
         publish_diagnostics(
             self,
             self._pub_diag,
             level=level,
-            message=self.last_error or phase.value,
+            message=message or phase.value,
             hardware_id="armourcam",
-            values=self.session.status(),
+            values={**self.session.status(), **self.problems.values()},
         )
 
 

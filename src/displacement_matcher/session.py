@@ -18,7 +18,9 @@ Nothing is lost: the baseline, every run (its fused poses and its report) and th
 progress (its id and stamps, at every start, stop and completion: ``session.json``) are written
 atomically (temporary file + ``os.replace``) to ``data_dir``; a new :class:`Session` on the same
 directory resumes with them, and a run that was active or still settling when the matcher died is
-measured on the frames that come after the restart.
+measured on the frames that come after the restart. A file that cannot be written (disk full)
+is kept in memory, reported by an error notice and written at the next save
+(:attr:`Session.unsaved_paths`).
 
 Frames are pose sets in the camera frame (millimetres, OpenCV axes) as produced by
 :func:`pose_estimator.estimate`; times are seconds (ROS header stamps).
@@ -27,6 +29,7 @@ Frames are pose sets in the camera frame (millimetres, OpenCV axes) as produced 
 from __future__ import annotations
 
 import enum
+import functools
 import json
 import os
 import re
@@ -34,7 +37,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Concatenate, ParamSpec
 
 import numpy as np
 from numpy.typing import NDArray
@@ -53,6 +56,7 @@ RUNS_IN_MEMORY = 4
 
 Fuser = Callable[[Sequence[Sequence[FiducialPose]]], list[FiducialPose]]
 Comparer = Callable[[Sequence[FiducialPose], Sequence[FiducialPose]], "Comparison"]
+_P = ParamSpec("_P")
 
 
 class SessionError(ValueError):
@@ -288,12 +292,31 @@ def frames_agree(
     return bool(ok.mean() >= fraction)
 
 
+def _with_save_notices(
+    method: Callable[Concatenate[Session, _P], list[Event]],
+) -> Callable[Concatenate[Session, _P], list[Event]]:
+    """Append the notices of the saves ``method`` made (disk errors) to the events it returns.
+
+    The saves happen deep inside the state machine; collecting their notices here gives every
+    public input one place where they reach the caller.
+    """
+
+    @functools.wraps(method)
+    def wrapper(self: Session, /, *args: _P.args, **kwargs: _P.kwargs) -> list[Event]:
+        events = method(self, *args, **kwargs)
+        notices, self._save_notices = self._save_notices, []
+        return events + notices
+
+    return wrapper
+
+
 class Session:
     """The matcher's hall-automation state machine.
 
     Feed it with :meth:`add_frame`, :meth:`set_run_active`, :meth:`set_run_id` and
     :meth:`capture_baseline`; each returns the events it caused (new baseline, completed run,
-    notices). With a ``data_dir`` it resumes from what an earlier session wrote there.
+    notices). With a ``data_dir`` it resumes from what an earlier session wrote there; a file
+    that cannot be written is kept in memory (:attr:`unsaved_paths`) and retried at every save.
 
     Parameters
     ----------
@@ -333,7 +356,16 @@ class Session:
         self._capture_requested = False
         self._settle_count = 0
         self._stop_stamp: float | None = None
+        # Consecutive frames stamped before the stop that arrived since it (in flight, or a
+        # camera clock lagging the hall's).
+        self._stale_frames = 0
         self._start_stamp: float | None = None
+        # Documents a disk error kept from data_dir, oldest first, and the notices of the saves
+        # not yet returned to the caller (see _with_save_notices).
+        self._unsaved: dict[Path, Any] = {}
+        self._save_notices: list[Event] = []
+        # Sequence of the last run whose id the hall announced again (warned once per run).
+        self._reused_id_warned: int | None = None
         self._baseline_due = False
         self._window = _Window(max(config.baseline_frames, config.settle_frames))
         self.phase = Phase.WAITING_BASELINE
@@ -345,6 +377,7 @@ class Session:
 
     # ------------------------------------------------------------------ inputs
 
+    @_with_save_notices
     def capture_baseline(self) -> list[Event]:
         """Command: capture a new baseline from the next settled frames."""
         if self._run_active:
@@ -354,6 +387,7 @@ class Session:
         self.phase = Phase.CAPTURING_BASELINE
         return [Notice("info", f"capturing baseline from {self.config.baseline_frames} frames")]
 
+    @_with_save_notices
     def set_run_id(self, run_id: str) -> list[Event]:
         """The hall announced the id of the current run (while one is active) or of the next."""
         run_id = run_id.strip()
@@ -367,18 +401,31 @@ class Session:
             self._current_run_id_auto = False
             self._save_state()
         elif self.runs and self.runs[-1].run_id == run_id and self.phase != Phase.SETTLING:
-            return [Notice("info", f"run id {run_id} already measured; ignored")]
+            last = self.runs[-1]
+            if self._reused_id_warned == last.sequence:
+                return []  # a hall republishing its id periodically must not flood the log
+            self._reused_id_warned = last.sequence
+            name = self._pending_run_id or f"run-{self.runs_completed + 1:03d}"
+            return [
+                Notice(
+                    "warn",
+                    f"run id {run_id} already measured (run {last.sequence}); ignored: the next "
+                    f"run will be named {name} unless the hall announces a new id",
+                )
+            ]
         else:
             self._pending_run_id = run_id
         return []
 
+    @_with_save_notices
     def set_run_active(self, active: bool, stamp_s: float | None = None) -> list[Event]:
         """The hall's run state changed (repeated identical states are harmless).
 
         ``stamp_s`` is when the change happened, on the clock of the frames' stamps. Frames
         stamped before a start that arrive after it (still in flight through the pipeline) still
         count for a pending baseline; frames stamped before a stop (the scene still moving) are
-        not used for settling.
+        not used for settling, unless ``settle_timeout_frames`` of them arrive in a row (a camera
+        clock lagging the hall's): the run then settles on the frames in arrival order.
         """
         events: list[Event] = []
         if active == self._run_active:
@@ -407,6 +454,7 @@ class Session:
             if self._baseline_due:
                 events += self._baseline_from_window("auto", partial=True)
             self._stop_stamp = stamp_s
+            self._stale_frames = 0
             self._window.clear()
             self._settle_count = 0
             self.phase = Phase.SETTLING
@@ -434,6 +482,7 @@ class Session:
         stamp, self._deferred_start = self._deferred_start, None
         return self._start_run(stamp)
 
+    @_with_save_notices
     def add_frame(self, poses: Sequence[FiducialPose], stamp_s: float = 0.0) -> list[Event]:
         """One frame's pose set (possibly empty)."""
         nxt = self._deferred_start
@@ -454,16 +503,36 @@ class Session:
                     return self._baseline_from_window("auto", partial=False)
                 return []
             return self._baseline_from_window("auto", partial=True)
+        lag: list[Event] = []
         if self.phase == Phase.SETTLING and stop is not None and stamp_s < stop:
-            if self.baseline is None and start is not None and stamp_s < start:
-                # Pre-run frames delayed past the whole run (a matcher discovered late, a slow
-                # pipeline): still the scene before the run, so still the baseline.
-                self._late_baseline.append((tuple(poses), float(stamp_s)))
-            return []
+            if self._stale_frames < self.config.settle_timeout_frames:
+                self._stale_frames += 1
+                if self.baseline is None and start is not None and stamp_s < start:
+                    # Pre-run frames delayed past the whole run (a matcher discovered late, a
+                    # slow pipeline): still the scene before the run, so still the baseline.
+                    self._late_baseline.append((tuple(poses), float(stamp_s)))
+                return []
+            # More frames than a settle timeout cannot all have been in flight: the camera's
+            # clock lags the hall's (or a bag replays old stamps), so the stop stamp would hold
+            # the run forever. The frames count in arrival order from now on.
+            lag.append(
+                Notice(
+                    "warn",
+                    f"frames stamped {stop - stamp_s:.1f} s before the hall's stop keep arriving "
+                    f"after it ({self._stale_frames} frames): the camera clock seems to lag the "
+                    "hall clock; settling on arrival order",
+                )
+            )
+            self._stop_stamp = None
+            # Frames taken for "pre-run, delayed" were as likely after the run: with clocks
+            # this far apart a baseline from them could hide the run's every movement.
+            self._late_baseline.clear()
+            self._save_state()  # a restarted matcher settles this run on arrival order too
+        self._stale_frames = 0
         self._push(poses, stamp_s)
         if self.phase == Phase.SETTLING:
             self._settle_count += 1
-            events = self._finish_run(force=False)
+            events = lag + self._finish_run(force=False)
             if nxt is not None and any(isinstance(e, RunCompleted) for e in events):
                 events += self._begin_deferred_run()
             return events
@@ -475,9 +544,16 @@ class Session:
             return self._baseline_from_window(reason, partial=False)
         return []
 
+    @_with_save_notices
     def end_of_input(self) -> list[Event]:
-        """No more frames will come (end of a bag): finish a pending baseline or run."""
+        """No more frames will come (end of a bag): finish a pending baseline or run.
+
+        The files a disk error kept in memory are tried once more first (the last chance
+        before the process ends).
+        """
         events: list[Event] = []
+        if self._unsaved:
+            self._flush_unsaved(None, len(self._unsaved))
         if self.baseline is None and self._window.frames and self.phase != Phase.SETTLING:
             events += self._baseline_from_window("auto", partial=True)
         if self.phase == Phase.SETTLING:
@@ -502,7 +578,16 @@ class Session:
             "frames_dropped": str(self.frames_dropped),
             "last_frame_fiducials": str(self.last_frame_fiducials),
             "data_dir": str(self.config.data_dir or ""),
+            "unsaved_files": str(len(self._unsaved)),
         }
+
+    @property
+    def unsaved_paths(self) -> tuple[Path, ...]:
+        """Files of ``data_dir`` not written yet (a disk error), oldest first.
+
+        Their documents are held in memory and written, in this order, at the next save.
+        """
+        return tuple(self._unsaved)
 
     # ------------------------------------------------------------------ internals
 
@@ -530,6 +615,9 @@ class Session:
         frames = self._last_frames(self.config.baseline_frames)
         if not frames:
             return [Notice("warn", "run started without a baseline and no frames to take one")]
+        # Fewer frames than asked that all agree are a still scene seen briefly (a short wait
+        # before the run), not an unsettled one.
+        agreed = len(frames) > 1 and self._settled(len(frames))
         fused = tuple(self._fuse([f for f, _ in frames]))
         self.baseline = Baseline(fused, len(frames), frames[-1][1], reason)
         self._capture_requested = False
@@ -539,7 +627,15 @@ class Session:
             self.phase = Phase.MONITORING
         self._save_baseline()
         events: list[Event] = [BaselineCaptured(self.baseline)]
-        if partial:
+        if partial and agreed:
+            events.append(
+                Notice(
+                    "info",
+                    f"baseline from the {len(frames)} agreeing frames before the run "
+                    f"(baseline_frames {self.config.baseline_frames})",
+                )
+            )
+        elif partial:
             events.append(
                 Notice("warn", f"run started before the baseline settled: fused {len(frames)}")
             )
@@ -629,6 +725,50 @@ class Session:
 
     # ------------------------------------------------------------------ persistence
 
+    def _save(self, path: Path, doc: dict[str, Any]) -> None:
+        """Write ``doc`` to ``path`` after the documents still unsaved; never raises OSError.
+
+        A disk error (full, read-only, gone) must not stop the node nor lose a result: the
+        document waits in memory (replacing an older unsaved version of the same file) and is
+        written at the next save. Notices go to ``_save_notices``.
+        """
+        backlog = len(self._unsaved)
+        self._unsaved.pop(path, None)  # superseded: only the latest version is written
+        self._unsaved[path] = doc
+        self._flush_unsaved(path, backlog)
+
+    def _flush_unsaved(self, requested: Path | None, backlog: int) -> None:
+        """Write the unsaved documents in order, stopping at the first that fails.
+
+        Stopping keeps the order on disk: ``session.json`` never says a run is done before
+        the run's own file exists. ``requested`` is the file this save is for (None: a retry),
+        named in the error notice; ``backlog`` the documents that were waiting before it.
+        """
+        for path, doc in list(self._unsaved.items()):
+            try:
+                write_json_atomic(path, doc)
+            except OSError as err:
+                name = requested or path
+                where = "" if path == name else f" (writing the older {path} first)"
+                self._save_notices.append(
+                    Notice(
+                        "error",
+                        f"could not save {name}: {err.strerror or err}{where}; kept in memory, "
+                        "retried at the next save",
+                    )
+                )
+                return
+            except Exception:
+                # Not the disk (a document that cannot be written at all): dropped rather than
+                # failing every later save too.
+                del self._unsaved[path]
+                raise
+            del self._unsaved[path]
+        if backlog > 0:
+            self._save_notices.append(
+                Notice("info", f"wrote the {backlog} files kept in memory since a disk error")
+            )
+
     def _save_baseline(self) -> None:
         if self.config.data_dir is None or self.baseline is None:
             return
@@ -641,7 +781,7 @@ class Session:
             "reason": b.reason,
             "poses": [pose_to_dict(p) for p in b.poses],
         }
-        write_json_atomic(Path(self.config.data_dir) / "baseline.json", doc)
+        self._save(Path(self.config.data_dir) / "baseline.json", doc)
 
     def _save_run(self, run: RunRecord) -> None:
         if self.config.data_dir is None:
@@ -657,7 +797,7 @@ class Session:
             "report": run.report,
         }
         name = f"{run.sequence:04d}-{_safe_name(run.run_id)}.json"
-        write_json_atomic(Path(self.config.data_dir) / "runs" / name, doc)
+        self._save(Path(self.config.data_dir) / "runs" / name, doc)
 
     def _save_state(self) -> None:
         """The run in progress (active or settling), so that a restarted matcher measures it.
@@ -679,7 +819,7 @@ class Session:
             "stop_stamp_s": self._stop_stamp if in_run else None,
             "baseline_due": self._baseline_due if in_run else False,
         }
-        write_json_atomic(Path(self.config.data_dir) / SESSION_STATE_FILE, doc)
+        self._save(Path(self.config.data_dir) / SESSION_STATE_FILE, doc)
 
     def _load_state(self, path: Path) -> None:
         doc = _read_json(path)

@@ -19,7 +19,8 @@ Published
     (``reliable`` or ``sensor_data``), one message per decoded frame (an empty cloud when
     nothing is found).
     ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``, reliable, every
-    ``diagnostics_period_s``: frames received / published / dropped, last error.
+    ``diagnostics_period_s``: frames received / published / dropped, the last problem; WARN
+    while a frame was dropped in the last 30 s (:class:`armourcam.graph.RecentProblems`).
 
 A frame that cannot be decoded (unknown encoding, wrong ``step``, zero size, corrupt JPEG...) or
 detected is logged with the reason and dropped; the node lives on.
@@ -45,6 +46,7 @@ from armourcam.graph import (
     FrameTimes,
     GraphError,
     Param,
+    RecentProblems,
     declare_parameters,
     publish_diagnostics,
     record_qos,
@@ -145,7 +147,7 @@ class FiducialDetectorNode(Node):
         self._sub = self.create_subscription(msg_type, cfg.input_topic, self._on_image, qos)
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
         self.received = self.published = self.dropped = 0
-        self.last_error = ""
+        self.problems = RecentProblems()
         self.frame_times = FrameTimes()
         self.get_logger().info(
             f"detecting on {cfg.input_topic} ({msg_type.__name__}, {cfg.qos}) -> "
@@ -168,8 +170,9 @@ class FiducialDetectorNode(Node):
             # bug worth its type name in the log, but still not worth the rig's monitoring.
             self.dropped += 1
             kind = "" if isinstance(err, ValueError) else f"{type(err).__name__}: "
-            self.last_error = f"frame {self.received} dropped: {kind}{err}"
-            self.get_logger().error(self.last_error)
+            text = f"frame {self.received} dropped: {kind}{err}"
+            self.problems.report("warn", text)
+            self.get_logger().error(text)
             return
         cloud = records.to_pointcloud2(
             PointCloud2,
@@ -186,13 +189,14 @@ class FiducialDetectorNode(Node):
         publish_diagnostics(
             self,
             self._diag,
-            level="warn" if self.dropped else "ok",
-            message=self.last_error or "ok",
+            level=self.problems.level(),
+            message=self.problems.message() or "ok",
             hardware_id=self.config.input_topic,
             values={
                 "frames_received": str(self.received),
                 "frames_published": str(self.published),
                 "frames_dropped": str(self.dropped),
+                **self.problems.values(),
                 **self.frame_times.values(),
             },
         )

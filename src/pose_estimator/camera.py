@@ -92,6 +92,25 @@ class CameraModel:
                 f"image is {width}x{height} but the calibration is for {self.width}x{self.height}"
             )
 
+    def check_pixels(self, u: ArrayLike, v: ArrayLike) -> None:
+        """Raise :class:`CalibrationError` if any pixel ``(u, v)`` (pixel centres at integer
+        coordinates) lies outside this camera's image: detections from an image of another size
+        than the calibration's (a camera info that does not belong to the camera) would be
+        posed with the wrong principal point and focal length, silently."""
+        uu = np.asarray(u, dtype=np.float64).ravel()
+        vv = np.asarray(v, dtype=np.float64).ravel()
+        outside = ~(
+            (uu >= -0.5) & (uu <= self.width - 0.5) & (vv >= -0.5) & (vv <= self.height - 0.5)
+        )
+        if np.any(outside):
+            i = int(np.argmax(outside))
+            if not (np.isfinite(uu[i]) and np.isfinite(vv[i])):
+                raise CalibrationError(f"detection at ({uu[i]}, {vv[i]}) px is not a pixel")
+            raise CalibrationError(
+                f"detection at ({uu[i]:.1f}, {vv[i]:.1f}) px lies outside the calibration's "
+                f"{self.width}x{self.height} image: the calibration is not this camera's"
+            )
+
     def project(self, points_mm: ArrayLike) -> NDArray[np.float64]:
         """Project camera-frame points to distorted pixel coordinates.
 

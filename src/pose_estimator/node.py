@@ -22,11 +22,14 @@ Published
     ``pose_array_topic`` (default ``/armourcam/pose_array``), ``geometry_msgs/PoseArray``:
     the same poses for RViz/Foxglove in **metres** (REP 103), orientation = rotation taking
     +z to the fiducial's normal; QoS as the input.
-    ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``: frames, drops, camera state.
+    ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``: frames, drops, camera state; WARN
+    while waiting for camera info or after a dropped frame, ERROR after a rejected camera info
+    (each problem for 30 s, :class:`armourcam.graph.RecentProblems`).
 
 Detections that arrive before any camera info are held (at most ``pending_limit`` frames, oldest
 dropped with a warning) and processed as soon as the camera is known. A frame whose records are
-malformed, or whose pose estimation fails, is logged and dropped; the node lives on.
+malformed, lies outside the camera's image (a camera info that is not this camera's), or whose
+pose estimation fails, is logged and dropped; the node lives on.
 
 Parameters: see :data:`PARAMS`.
 """
@@ -52,11 +55,13 @@ from armourcam.graph import (
     FrameTimes,
     GraphError,
     Param,
+    RecentProblems,
     declare_parameters,
     publish_diagnostics,
     record_qos,
     run_node,
     stream_qos,
+    worst_level,
 )
 
 from .camera import CameraModel
@@ -161,7 +166,7 @@ class PoseEstimatorNode(Node):
         self.add_on_set_parameters_callback(self._check_parameters)
         self._pending: deque[PointCloud2] = deque()
         self.received = self.published = self.dropped = 0
-        self.last_error = ""
+        self.problems = RecentProblems()
         self.frame_times = FrameTimes()
         source = cfg.calibration_file or cfg.camera_info_topic
         self.get_logger().info(
@@ -190,8 +195,9 @@ class PoseEstimatorNode(Node):
                 msg.width, msg.height, msg.k, msg.distortion_model, msg.d
             )
         except CalibrationError as err:
-            self.last_error = f"camera info rejected: {err}"
-            self.get_logger().error(self.last_error, throttle_duration_sec=5.0)
+            text = f"camera info rejected: {err}"
+            self.problems.report("error", text)
+            self.get_logger().error(text, throttle_duration_sec=5.0)
             return
         first = self.camera is None
         self.camera = camera
@@ -222,8 +228,9 @@ class PoseEstimatorNode(Node):
         except Exception as err:
             self.dropped += 1
             kind = "" if isinstance(err, ValueError) else f"{type(err).__name__}: "
-            self.last_error = f"frame dropped: {kind}{err}"
-            self.get_logger().error(self.last_error)
+            text = f"frame dropped: {kind}{err}"
+            self.problems.report("warn", text)
+            self.get_logger().error(text)
             return
         # The PoseArray first: it is what viewers (and the latency budget) wait for.
         self._pub_array.publish(pose_array(msg.header, rows))
@@ -234,13 +241,19 @@ class PoseEstimatorNode(Node):
         self.frame_times.add(1e3 * (time.perf_counter() - t0))
 
     def _publish_diagnostics(self) -> None:
-        ok = self.camera is not None and not self.dropped
         cam = f"{self.camera.width}x{self.camera.height}" if self.camera else "waiting"
+        # Waiting for the camera is a state (WARN while it lasts); drops and rejected camera
+        # infos are events, shown while recent.
+        level = self.problems.level()
+        message = self.problems.message()
+        if self.camera is None:
+            level = worst_level(level, "warn")
+            message = message or "waiting for camera info"
         publish_diagnostics(
             self,
             self._diag,
-            level="ok" if ok else "warn",
-            message=self.last_error or ("ok" if self.camera else "waiting for camera info"),
+            level=level,
+            message=message or "ok",
             hardware_id=self.config.calibration_file or self.config.camera_info_topic,
             values={
                 "camera": cam,
@@ -248,6 +261,7 @@ class PoseEstimatorNode(Node):
                 "frames_published": str(self.published),
                 "frames_dropped": str(self.dropped),
                 "frames_pending": str(len(self._pending)),
+                **self.problems.values(),
                 **self.frame_times.values(),
             },
         )

@@ -56,7 +56,12 @@ def test_analyze_session_bag_reports_every_run(tmp_path: Path) -> None:
         assert acc["err_median_mm"] < 1.0
         assert acc["wrong"] <= 2
     assert doc["runs"][1]["incremental"]["summary"]["displaced_units"] == 0
-    assert len(list((tmp_path / "runs").glob("*.json"))) == 2
+    run_files = sorted((tmp_path / "runs").glob("*.json"))
+    assert len(run_files) == 2
+    for path in run_files:  # each stands alone: it names what it was measured from
+        inputs = json.loads(path.read_text())["inputs"]
+        assert inputs == {"bag": str(BAG), "topics": doc["topics"]}
+        assert inputs["topics"]["image"] == sessionbag.COMPRESSED_TOPIC
     # The markers bag opens with the plain MCAP reader Foxglove uses.
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -79,6 +84,13 @@ def test_analyze_real_ros1_bag_finds_no_fiducials(tmp_path: Path) -> None:
     assert result.fiducials_per_frame == [0]
     assert result.runs == []
     assert result.topics["image"] == "/raspicam_node/image/compressed"
+
+
+def test_analyze_refuses_a_missing_image_topic_and_creates_nothing(tmp_path: Path) -> None:
+    out = tmp_path / "never"
+    with pytest.raises(ValueError, match="/no/such/topic"):
+        analyze_bag(BAG, out, image_topic="/no/such/topic")
+    assert not out.exists()
 
 
 def test_analyze_refuses_an_existing_markers_bag(tmp_path: Path) -> None:

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+import enum
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -129,6 +132,87 @@ def test_latched_qos_is_recorded(tmp_path: Path) -> None:
     assert meta.count("durability: transient_local") == 1
     with bagio.open_bag(tmp_path / "bag") as bag:
         assert [t for t, i in bag.topics.items() if i.latched] == ["/armourcam/report"]
+
+
+# Stand-ins for rclpy's policy enums and Duration (rmw's member names; core tests run without
+# rclpy): qos_from_profile reads profiles by duck typing.
+_History = enum.IntEnum("_History", {"KEEP_LAST": 1, "UNKNOWN": 3})
+_Reliability = enum.IntEnum("_Reliability", {"RELIABLE": 1, "BEST_EFFORT": 2})
+_Durability = enum.IntEnum("_Durability", {"TRANSIENT_LOCAL": 1, "VOLATILE": 2})
+_Liveliness = enum.IntEnum("_Liveliness", {"AUTOMATIC": 1, "MANUAL_BY_TOPIC": 3})
+
+
+@dataclasses.dataclass
+class _Duration:
+    nanoseconds: int
+
+
+def _profile(reliability: str, durability: str) -> SimpleNamespace:
+    """A publisher's QoS as discovery reports it (history unknown, depth 0, infinite deadline
+    and lease), shaped like an rclpy ``QoSProfile``."""
+    inf = _Duration(2**63 - 1)
+    return SimpleNamespace(
+        history=_History.UNKNOWN,
+        depth=0,
+        reliability=_Reliability[reliability],
+        durability=_Durability[durability],
+        deadline=inf,
+        lifespan=_Duration(1_500_000_000),
+        liveliness=_Liveliness.AUTOMATIC,
+        liveliness_lease_duration=inf,
+        avoid_ros_namespace_conventions=False,
+    )
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_offered_qos_profiles_are_recorded(tmp_path: Path, storage: str) -> None:
+    """Publishers' QoS as discovered (rclpy profiles) is stored as rosbags ``Qos``, one profile
+    per publisher, and read back: a topic is latched only with a TRANSIENT_LOCAL offer."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+
+    camera = [_profile("BEST_EFFORT", "VOLATILE"), _profile("RELIABLE", "VOLATILE")]
+    with bagio.BagWriter(tmp_path / "bag", storage=storage) as w:  # type: ignore[arg-type]
+        w.add_topic("/camera/image_raw", bagio.IMAGE, offered_qos=camera)
+        w.add_topic("/armourcam/markers", "visualization_msgs/msg/MarkerArray", latched=True)
+        w.add_topic("/hall/run_id", "std_msgs/msg/String", offered_qos=[bagio._latched_qos()])
+        w.write_string("/hall/run_id", "run-01", 1)
+        w.write_image("/camera/image_raw", np.zeros((4, 6), np.uint8), 2)
+        with pytest.raises(BagError, match="latched or offered_qos, not both"):
+            w.add_topic("/x", "std_msgs/msg/String", latched=True, offered_qos=camera)
+        with pytest.raises(BagError, match="not a QoS profile"):
+            w.add_topic("/y", "std_msgs/msg/String", offered_qos=["reliable"])
+    inf = QosTime(9_223_372_036, 854_775_807)
+    with AnyReader([tmp_path / "bag"]) as reader:
+        offered = {c.topic: c.ext.offered_qos_profiles for c in reader.connections}
+    assert offered["/camera/image_raw"] == [
+        Qos(
+            QosHistory.UNKNOWN,
+            0,
+            reliability,
+            QosDurability.VOLATILE,
+            inf,
+            QosTime(1, 500_000_000),
+            QosLiveliness.AUTOMATIC,
+            inf,
+            False,
+        )
+        for reliability in (QosReliability.BEST_EFFORT, QosReliability.RELIABLE)
+    ]
+    assert [q.durability for q in offered["/armourcam/markers"]] == [QosDurability.TRANSIENT_LOCAL]
+    with bagio.open_bag(tmp_path / "bag") as bag:
+        assert {t: i.latched for t, i in bag.topics.items()} == {
+            "/armourcam/markers": True,
+            "/camera/image_raw": False,
+            "/hall/run_id": True,
+        }
 
 
 def test_mcap_bag_opens_in_foxglove_style_readers(tmp_path: Path) -> None:

@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import displacement_matcher.session as session_module
 from displacement_matcher.session import (
     RUNS_IN_MEMORY,
     BaselineCaptured,
     Event,
+    Notice,
     Phase,
     RunCompleted,
     Session,
@@ -476,3 +478,181 @@ def test_an_unusable_data_dir_is_refused_at_start(tmp_path: Path) -> None:
     fresh = tmp_path / "new" / "dir"
     Session(SessionConfig(data_dir=fresh))
     assert fresh.is_dir()
+
+
+def test_frames_stamped_behind_the_hall_clock_still_settle_the_run(
+    rng: np.random.Generator,
+) -> None:
+    """A camera clock 12.3 s behind the hall's: every frame after the stop is stamped before it.
+    After ``settle_timeout_frames`` such frames in a row the run settles on arrival order, with
+    one warning; the next stop is honoured again."""
+    lag = 12.3
+    truth0 = scene(16)
+    s = make(baseline_frames=2, settle_frames=2, settle_timeout_frames=6)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0 - lag)
+    truth1 = moved(truth0, [1], [6.0, 0, 0])
+    s.set_run_id("A")
+    s.set_run_active(True, 10.0)
+    s.set_run_active(False, 20.0)
+    # Six settled frames count as still in flight: ignored, silently.
+    assert not feed(s, [frame(truth1, rng) for _ in range(6)], 20.0 - lag)
+    events = s.add_frame(frame(truth1, rng), 21.2 - lag)
+    (warn,) = of_type(events, Notice)
+    assert warn.level == "warn"
+    assert "frames stamped 11.1 s before the hall's stop" in warn.text
+    assert "(6 frames)" in warn.text and "settling on arrival order" in warn.text
+    assert not of_type(events, RunCompleted)
+    events = s.add_frame(frame(truth1, rng), 21.4 - lag)
+    assert not of_type(events, Notice)  # warned once
+    (done,) = of_type(events, RunCompleted)
+    assert done.run.run_id == "A" and done.run.report["settled"] is True
+    d = disp_by_before(done.run.report, truth0)
+    assert np.linalg.norm(d[4] - [6.0, 0, 0]) < 0.5
+
+    # The counter restarts at each stop: a few in-flight frames after the next stop (a settled
+    # but wrong scene) are ignored again.
+    s.set_run_active(True, 30.0)
+    s.set_run_active(False, 40.0)
+    assert not feed(s, [frame(truth0 + 30.0, rng) for _ in range(3)], 39.0)
+    (done2,) = of_type(feed(s, [frame(truth1, rng) for _ in range(2)], 40.5), RunCompleted)
+    d2 = disp_by_before(done2.run.report, truth0)
+    assert np.linalg.norm(d2[4] - [6.0, 0, 0]) < 0.5
+
+
+def test_a_full_disk_keeps_files_in_memory_until_it_frees_up(
+    tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Saves failing with ENOSPC neither raise nor lose anything: each failure is an error
+    notice, the run is still measured and reported, and the next save once the disk has room
+    writes every file kept in memory, in order, with its latest content."""
+    truth0 = scene(16)
+    s = make(tmp_path, baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    writes: list[Path] = []
+    real_write = session_module.write_json_atomic
+
+    def full_disk(path: Path, doc: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    def counting_write(path: Path, doc: object) -> None:
+        writes.append(path)
+        real_write(path, doc)
+
+    monkeypatch.setattr(session_module, "write_json_atomic", full_disk)
+    state = tmp_path / "session.json"
+    s.set_run_id("R1")
+    (err,) = [e for e in of_type(s.set_run_active(True, 1.0), Notice) if e.level == "error"]
+    assert err.text == (
+        f"could not save {state}: No space left on device; kept in memory, retried at the next save"
+    )
+    assert s.unsaved_paths == (state,)
+    assert s.status()["unsaved_files"] == "1"
+    s.set_run_active(False, 2.0)
+    assert s.unsaved_paths == (state,)  # the newer state replaced the older one
+    truth1 = moved(truth0, [1], [6.0, 0, 0])
+    events = feed(s, [frame(truth1, rng) for _ in range(2)], 2.5)
+    (done,) = of_type(events, RunCompleted)
+    assert done.run.run_id == "R1" and done.run.report["settled"] is True
+    assert any(e.level == "error" and "No space left" in e.text for e in of_type(events, Notice))
+    run_file = tmp_path / "runs" / "0001-R1.json"
+    assert s.unsaved_paths == (run_file, state)
+    assert s.status()["unsaved_files"] == "2"
+    assert not run_file.exists()
+    assert not state.exists()  # none before the first run
+
+    monkeypatch.setattr(session_module, "write_json_atomic", counting_write)
+    events = s.set_run_active(True, 3.0)  # the next save
+    assert writes == [run_file, state]
+    assert not [e for e in of_type(events, Notice) if e.level == "error"]
+    assert any("wrote the 2 files kept in memory" in e.text for e in of_type(events, Notice))
+    assert s.unsaved_paths == () and s.status()["unsaved_files"] == "0"
+    assert json.loads(run_file.read_text())["report"]["run_id"] == "R1"
+    assert json.loads(state.read_text())["phase"] == "run_active"  # the latest, not a stale one
+    assert not list(tmp_path.rglob("*.tmp"))
+    again = make(tmp_path, baseline_frames=2, settle_frames=2)
+    assert [r.run_id for r in again.runs] == ["R1"] and again.phase == Phase.RUN_ACTIVE
+
+
+def test_end_of_input_retries_unsaved_files(
+    tmp_path: Path, rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The end of a bag is the last chance to write what a disk error kept in memory."""
+    real_write = session_module.write_json_atomic
+
+    def full_disk(path: Path, doc: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(session_module, "write_json_atomic", full_disk)
+    s = make(tmp_path, baseline_frames=2)
+    events = feed(s, [frame(scene(16), rng) for _ in range(2)], 0.0)
+    assert of_type(events, BaselineCaptured)
+    assert s.unsaved_paths == (tmp_path / "baseline.json",)
+    monkeypatch.setattr(session_module, "write_json_atomic", real_write)
+    s.end_of_input()
+    assert s.unsaved_paths == ()
+    assert json.loads((tmp_path / "baseline.json").read_text())["n_frames"] == 2
+
+
+def test_a_reused_run_id_warns_once(rng: np.random.Generator) -> None:
+    """The hall announcing the last run's id again means the next run gets an automatic name:
+    a warning, once; a hall republishing the id periodically does not flood the log."""
+    truth0 = scene(16)
+    s = make(baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    s.set_run_id("A")
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 2.5)
+    (warn,) = s.set_run_id("A")
+    assert isinstance(warn, Notice) and warn.level == "warn"
+    assert "run id A already measured" in warn.text and "run-002" in warn.text
+    assert s.set_run_id("A") == []
+    assert s.set_run_id(" A ") == []
+    s.set_run_active(True, 3.0)
+    s.set_run_active(False, 4.0)
+    (done,) = of_type(feed(s, [frame(truth0, rng) for _ in range(2)], 4.5), RunCompleted)
+    assert done.run.run_id == "run-002"
+
+
+def test_a_short_still_wait_before_the_run_is_a_baseline_without_a_warning(
+    rng: np.random.Generator,
+) -> None:
+    """Four agreeing frames when five were asked for (the bundled session bag): the baseline
+    is their fusion, said at info level; frames that disagree still give the warning."""
+    truth0 = scene(16)
+    s = make(baseline_frames=5)
+    feed(s, [frame(truth0, rng) for _ in range(4)], 0.0)
+    assert s.baseline is None
+    events = s.set_run_active(True, 1.0) + s.add_frame(frame(truth0 + 30.0, rng), 1.2)
+    (cap,) = of_type(events, BaselineCaptured)
+    assert cap.baseline.n_frames == 4
+    (note,) = of_type(events, Notice)[-1:]
+    assert note.level == "info" and "4 agreeing frames before the run" in note.text
+
+    shaky = make(baseline_frames=5)
+    feed(shaky, [frame(truth0 + 5.0 * k, rng) for k in range(4)], 0.0)  # the scene moving
+    events = shaky.set_run_active(True, 1.0) + shaky.add_frame(frame(truth0, rng), 1.2)
+    assert of_type(events, BaselineCaptured)
+    assert any(
+        e.level == "warn" and "before the baseline settled: fused 4" in e.text
+        for e in of_type(events, Notice)
+    )
+
+
+def test_a_lagging_clock_does_not_make_a_baseline_of_frames_after_the_run(
+    rng: np.random.Generator,
+) -> None:
+    """No baseline yet and a camera clock far behind the hall's: the frames after the run are
+    stamped before its start, which looks like delayed pre-run frames. Once the lag shows, they
+    are not fused into a baseline (which would report the run's moves as zero): the run is
+    reported without a baseline instead."""
+    lag = 100.0
+    truth1 = moved(scene(16), [1], [6.0, 0, 0])
+    s = make(baseline_frames=2, settle_frames=2, settle_timeout_frames=4)
+    s.set_run_id("A")
+    s.set_run_active(True, 10.0)
+    s.set_run_active(False, 20.0)
+    events = feed(s, [frame(truth1, rng) for _ in range(7)], 21.0 - lag)
+    assert not of_type(events, BaselineCaptured) and s.baseline is None
+    (done,) = of_type(events, RunCompleted)
+    assert done.run.report["error"] == "no baseline"

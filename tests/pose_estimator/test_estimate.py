@@ -618,3 +618,27 @@ def test_records_path_equals_estimate_on_objects() -> None:
         records.detection_ellipse_columns(recs)
     with pytest.raises(PoseError, match="outer radius"):
         estimate_ellipses(*records.detection_ellipse_columns(recs[1:]), 0.0, CAMERA)
+
+
+def test_detections_outside_the_cameras_image_are_refused() -> None:
+    """Detections from an image larger than the calibration's (a camera info that belongs to
+    another camera) would be posed with the wrong principal point and focal length: the node's
+    records path refuses the frame, naming the pixel and the calibration's size."""
+    from armourcam import records
+    from pose_estimator.camera import CameraModel
+    from pose_estimator.errors import CalibrationError
+
+    rng = np.random.default_rng(5)
+    target = _target("ring", 20.0, (30.0, -10.0, 700.0))
+    recs = records.detections_to_records([synthetic_detection(CAMERA, target, 0.02, rng)])
+    assert len(records.estimate_pose_records(recs, CAMERA, 7.1)) == 1
+    u, v = float(recs["u"][0]), float(recs["v"][0])
+    small = CameraModel.ideal(int(u), 4000, 6507.0)  # the detection lies right of its image
+    with pytest.raises(
+        CalibrationError, match=rf"\({u:.1f}, {v:.1f}\) px lies outside .*{int(u)}x4000"
+    ):
+        records.estimate_pose_records(recs, small, 7.1)
+    CameraModel.ideal(int(u) + 2, 4000, 6507.0).check_pixels([u, -0.5], [v, 3999.5])  # edges in
+    recs["v"][0] = np.nan
+    with pytest.raises(CalibrationError, match="not a pixel"):
+        CAMERA.check_pixels(recs["u"], recs["v"])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import pytest
@@ -75,3 +76,46 @@ def test_frame_times_are_nearest_rank_percentiles_of_the_recent_window() -> None
     assert values["frame_ms_frames"] == "20"
     with pytest.raises(GraphError, match="window"):
         FrameTimes(window=0)
+
+
+def test_a_problem_raises_the_level_while_recent_then_the_node_recovers() -> None:
+    from armourcam.graph import GraphError, RecentProblems, worst_level
+
+    now = [100.0]
+    problems = RecentProblems(hold_s=30.0, clock=lambda: now[0])
+    assert (problems.level(), problems.message()) == ("ok", "")
+    assert problems.values() == {"last_problem": "", "last_problem_age_s": ""}
+    problems.report("warn", "frame 3 dropped: corrupt JPEG")
+    now[0] += 10.0
+    problems.report("error", "camera info rejected: K is singular")
+    now[0] += 25.0  # the warning is 35 s old, the error 25 s
+    assert (problems.level(), problems.message()) == (
+        "error",
+        "camera info rejected: K is singular",
+    )
+    now[0] += 10.0  # both older than the hold: recovered, the last one still named
+    assert (problems.level(), problems.message()) == ("ok", "")
+    assert problems.values() == {
+        "last_problem": "camera info rejected: K is singular",
+        "last_problem_age_s": "35.0",
+    }
+    problems.report("warn", "frame 9 dropped")
+    assert problems.level() == "warn"
+    assert worst_level("ok", "warn") == "warn" and worst_level("error", "ok") == "error"
+    with pytest.raises(GraphError, match="level"):
+        problems.report("ok", "fine")
+    with pytest.raises(GraphError, match="hold"):
+        RecentProblems(hold_s=0.0)
+
+
+def test_an_integer_for_a_float_parameter_is_taken_as_that_number(nodes: Any) -> None:
+    """``diameter_mm: 7`` (YAML's int) is the number a person means; rclpy alone refuses a
+    static double parameter given an integer."""
+    nodes.start(
+        "pose_estimator", params={"diameter_mm": 7, "diagnostics_period_s": 1}, label="ints"
+    )
+    deadline = time.monotonic() + 20.0
+    while "poses from" not in nodes.log("ints") and time.monotonic() < deadline:
+        assert nodes.alive("ints"), nodes.log("ints")
+        time.sleep(0.1)
+    assert "poses from" in nodes.log("ints") and nodes.alive("ints"), nodes.log("ints")

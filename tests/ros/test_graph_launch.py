@@ -41,3 +41,65 @@ def test_launched_matcher_runs_niced_and_every_process_stops(tmp_path: Path) -> 
     finally:
         graph.stop_processes(procs.values())
     assert all(p.poll() is not None for p in procs.values())
+
+
+def _children(pid: int) -> list[int]:
+    """Process ids whose parent is ``pid``."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _gone(pid: int) -> bool:
+    """True once ``pid`` has exited (a zombie awaiting its new parent counts as exited)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return True
+    return state == "Z"
+
+
+def test_nodes_end_when_the_launcher_is_killed(tmp_path: Path) -> None:
+    """``armourcam graph`` killed with SIGKILL (no chance to stop its nodes, which run in their
+    own sessions) still leaves no node running: each asked the kernel to end it with its
+    launcher."""
+    import signal
+    import subprocess
+    import sys
+
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "armourcam.cli", "graph", "--log-dir", str(tmp_path)],
+        env=ros_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    kids: list[int] = []
+    try:
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            kids = _children(launcher.pid)
+            logs = [tmp_path / f"{n}.log" for n in graph.NODE_NAMES]
+            if len(kids) == 3 and all(f.exists() and f.stat().st_size for f in logs):
+                break  # every node has started and logged its first line
+            time.sleep(0.1)
+        assert len(kids) == 3, kids
+        launcher.kill()
+        launcher.wait(5.0)
+        deadline = time.monotonic() + 20.0
+        while not all(_gone(k) for k in kids) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert all(_gone(k) for k in kids), [k for k in kids if not _gone(k)]
+    finally:
+        for k in kids:
+            if not _gone(k):
+                os.killpg(k, signal.SIGKILL)
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.wait(5.0)

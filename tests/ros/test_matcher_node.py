@@ -218,3 +218,58 @@ def test_a_stop_published_while_the_matcher_is_down_ends_the_resumed_run(
         rep["sequence"] == 1
         and rep["summary"]["moved_units"] + rep["summary"]["displaced_units"] >= 1
     )
+
+
+def test_a_data_dir_that_fails_mid_session_loses_nothing_and_the_node_lives_on(
+    nodes: Nodes, probe: Probe, tmp_path: Path
+) -> None:
+    """data_dir stops taking files in the middle of a session (a full disk; here a file where
+    the directory was, so that writes fail even for root): the run is still measured and
+    published, /diagnostics says ERROR naming the files not saved, and once the directory is
+    back the next save writes them all."""
+    import shutil
+
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    data = tmp_path / "data"
+    hall, truth0 = _matcher_with_baseline(nodes, probe, data)
+    assert probe.spin_until(lambda: (data / "baseline.json").exists(), 20.0)
+    statuses: list[Any] = []
+
+    def on_diag(msg: Any) -> None:
+        statuses.extend(s for s in msg.status if s.name == "armourcam: displacement_matcher")
+
+    probe.node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+    late = Latched(probe)
+    shutil.rmtree(data)
+    data.write_text("not a directory")
+    truth1 = truth0.copy()
+    truth1[:4] += [10.0, 0.0, 0.0]
+    hall.run("wave-D", truth1)
+    assert probe.spin_until(lambda: any(r["run_id"] == "wave-D" for r in late.reports), 20.0), (
+        nodes.log("displacement_matcher")
+    )
+    assert probe.spin_until(
+        lambda: statuses and statuses[-1].level == DiagnosticStatus.ERROR, 5.0
+    ), statuses
+    assert "not saved" in statuses[-1].message
+    values = {kv.key: kv.value for kv in statuses[-1].values}
+    assert int(values["unsaved_files"]) >= 2  # the run and session.json
+    assert nodes.alive("displacement_matcher")
+    assert "could not save" in nodes.log("displacement_matcher")
+
+    data.unlink()
+    data.mkdir()
+    hall.run("wave-E", truth1)  # its saves write the kept files first
+    assert probe.spin_until(lambda: len(list(data.glob("runs/*.json"))) == 2, 20.0), nodes.log(
+        "displacement_matcher"
+    )
+    names = sorted(p.name for p in data.glob("runs/*.json"))
+    assert names == ["0001-wave-D.json", "0002-wave-E.json"]
+    assert probe.spin_until(
+        lambda: (
+            statuses[-1].level != DiagnosticStatus.ERROR or "not saved" not in statuses[-1].message
+        ),
+        5.0,
+    )
+    assert nodes.alive("displacement_matcher")

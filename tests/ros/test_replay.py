@@ -9,12 +9,15 @@ import numpy as np
 import pytest
 from rosutil import Nodes, Probe, armourcam
 
-from armourcam import bagio
-from armourcam.graph import stream_qos
+from armourcam import bagio, records
+from armourcam.graph import Replayer, latched_qos, record_qos, stream_qos
 from pose_estimator.camera import CameraModel
 
 FIXTURE = Path(__file__).resolve().parents[3] / "shared" / "fixtures" / "real_camera_aruco_ros1.bag"
 N_FRAMES = 30
+IMAGE = "sensor_msgs/msg/Image"
+CLOUD = "sensor_msgs/msg/PointCloud2"
+MARKERS = "visualization_msgs/msg/MarkerArray"
 
 
 def plain_bag(path: Path, n: int) -> None:
@@ -115,3 +118,78 @@ def test_real_fixture_bag_replays_and_yields_zero_fiducials(nodes: Nodes, probe:
     probe.spin_for(0.5)
     assert counter.detections == [0]  # a real JPEG of people and ArUco tags: none of ours
     assert counter.widths == [0]
+
+
+def test_replayer_qos_matches_each_kind_of_subscriber(probe: Probe) -> None:
+    """Record streams and latched topics are republished TRANSIENT_LOCAL (a transient-local
+    reader, as the pose estimator's and the matcher's, matches no volatile writer); images and
+    camera info stay VOLATILE, even when a bag says latched (no history of big frames)."""
+
+    def qos(rep: Replayer, topic: str, msgtype: str, latched: bool = False) -> tuple[Any, ...]:
+        q = rep.publisher(topic, msgtype, latched=latched).qos_profile
+        return q.reliability.name, q.durability.name, q.depth
+
+    reliable = Replayer(probe.node, depth=50)
+    assert qos(reliable, "/camera/image_raw", IMAGE, True) == ("RELIABLE", "VOLATILE", 50)
+    assert qos(reliable, "/camera/camera_info", "sensor_msgs/CameraInfo", True)[1] == "VOLATILE"
+    assert qos(reliable, "/armourcam/poses", CLOUD) == ("RELIABLE", "TRANSIENT_LOCAL", 50)
+    assert qos(reliable, "/armourcam/markers", MARKERS, True) == ("RELIABLE", "TRANSIENT_LOCAL", 1)
+    assert qos(reliable, "/armourcam/markers_live", MARKERS)[1] == "VOLATILE"
+    live = Replayer(probe.node, qos="sensor_data", depth=5)
+    assert qos(live, "/live/image", IMAGE) == ("BEST_EFFORT", "VOLATILE", 5)
+    assert qos(live, "/live/poses", CLOUD) == ("BEST_EFFORT", "VOLATILE", 5)
+    # Recorded latched: reliable and transient-local whatever the replay's qos.
+    assert qos(live, "/live/baseline", CLOUD, True) == ("RELIABLE", "TRANSIENT_LOCAL", 5)
+
+
+def test_replayed_records_and_latched_outputs_reach_their_subscribers(
+    probe: Probe, tmp_path: Path
+) -> None:
+    """``armourcam replay --topics /armourcam/poses ...`` feeds a transient-local subscriber (as
+    the matcher's) and republishes a topic recorded latched so that a latched reader gets it."""
+    from sensor_msgs.msg import PointCloud2
+    from visualization_msgs.msg import MarkerArray
+
+    n_frames = 5
+    recs = records.layout("FiducialPoseRecord").empty(3)
+    recs["code"] = [4, 9, 17]
+    bag = tmp_path / "outputs"
+    with bagio.BagWriter(bag) as w:
+        for k in range(n_frames):
+            w.write_records("/armourcam/poses", "FiducialPoseRecord", recs, (k + 1) * 10**8)
+        w.add_topic("/armourcam/markers", MARKERS, latched=True)
+        w.write("/armourcam/markers", MARKERS, w.new(MARKERS, markers=[]), 10**9)
+    got: dict[str, list[Any]] = {"matcher": [], "viewer": [], "markers": []}
+    node = probe.node
+    node.create_subscription(
+        PointCloud2, "/armourcam/poses", got["matcher"].append, record_qos("reliable", 100)
+    )
+    node.create_subscription(
+        PointCloud2, "/armourcam/poses", got["viewer"].append, stream_qos("reliable", 100)
+    )
+    node.create_subscription(
+        MarkerArray, "/armourcam/markers", got["markers"].append, latched_qos()
+    )
+    out = armourcam(
+        "replay",
+        str(bag),
+        "--topics",
+        "/armourcam/poses",
+        "/armourcam/markers",
+        "--rate",
+        "10",
+        "--wait-subscribers",
+        "5",
+        "--linger",
+        "0.5",
+    )
+    assert out.returncode == 0, out.stderr
+    assert f"/armourcam/poses: {n_frames}" in out.stdout and "/armourcam/markers: 1" in out.stdout
+    assert "no subscriber yet" not in out.stderr
+    want = {"matcher": n_frames, "viewer": n_frames, "markers": 1}
+    assert probe.spin_until(lambda: {k: len(v) for k, v in got.items()} == want, 10.0), {
+        k: len(v) for k, v in got.items()
+    }
+    assert [records.from_pointcloud2(m)["code"].tolist() for m in got["matcher"]] == [
+        [4, 9, 17]
+    ] * n_frames

@@ -57,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
         stopping = True
 
     signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGHUP, _stop)  # a closed terminal stops the graph like Ctrl-C
     status = 0
     try:
         while not stopping:

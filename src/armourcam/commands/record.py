@@ -18,8 +18,11 @@ OUTPUT_TOPICS = (
     "/armourcam/baseline",
     "/diagnostics",
 )
+#: Recorded with ``--inputs``; those no publisher offers (say the raw or the compressed image) are
+#: left out of the bag.
 INPUT_TOPICS = (
     "/camera/image_raw",
+    "/camera/image_raw/compressed",
     "/camera/camera_info",
     "/hall/run_active",
     "/hall/run_id",
@@ -34,13 +37,19 @@ def register(subparsers: Any) -> None:
         help="record the graph's output topics to an MCAP bag",
         description=(
             "Record topics (default: the graph's outputs) into a ROS 2 MCAP bag until Ctrl-C or "
-            "--duration. Types are discovered from the graph; latched topics are recorded with "
-            "their last message even when published before the recorder started."
+            "--duration. Types and QoS are discovered from the graph: each topic is subscribed "
+            "to match its publishers (best effort for a live camera), whose QoS profiles are "
+            "stored in the bag; latched topics are recorded with their last message even when "
+            "published before the recorder started. Topics without a publisher are not recorded."
         ),
     )
     p.add_argument("--out", type=Path, required=True, help="bag directory to create")
     p.add_argument("topics", nargs="*", help="topics to record (default: the graph's outputs)")
-    p.add_argument("--inputs", action="store_true", help="also record the camera and hall inputs")
+    p.add_argument(
+        "--inputs",
+        action="store_true",
+        help="also record the camera (raw and compressed images, camera info) and hall inputs",
+    )
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.set_defaults(func=run)
 
