@@ -314,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{', image fit' if args.image_fit else ''}, {total:.0f} s total "
         f"({det_seconds:.0f} s in detect)"
     )
-    verdicts = report(cases, crb, paper, designs, sizes, slants)
+    report(cases, crb, paper, designs, sizes, slants)
     if args.json:
         args.json.write_text(
             json.dumps(
@@ -344,7 +344,7 @@ def main(argv: list[str] | None = None) -> int:
                 indent=1,
             )
         )
-    return 0 if all(verdicts) else 1
+    return 0  # a measurement: verdicts are printed; a non-zero status means it did not run
 
 
 def exact_within(n_images: int, tolerance: float) -> float:

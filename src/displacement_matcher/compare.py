@@ -20,9 +20,14 @@ from pose_estimator.camera import CameraModel
 from pose_estimator.types import FiducialPose
 
 from .damage import assess
+from .match import DEFAULT_GATE_MM
 from .refine import match_units
 from .types import DamageSummary, DamageThresholds, MatchResult, UnitMotion
 from .units import UnitMap
+
+#: Default matching gate in unit sizes Dn (when longer than ``DEFAULT_GATE_MM``): the issue's
+#: fields move units up to 2 Dn; the gate leaves a margin for their depth noise.
+GATE_DN = 2.4
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -101,7 +106,13 @@ def compare_poses(
     section_width_mm: float | None = None,
     **match_kw: Any,
 ) -> Assessment:
-    """Unit-aware matching and damage count of two pose sets (see :func:`match_units`)."""
+    """Unit-aware matching and damage count of two pose sets (see :func:`match_units`).
+
+    Without a ``gate_mm`` the gate is :data:`.match.DEFAULT_GATE_MM` or :data:`GATE_DN` unit
+    sizes, whichever is longer: a unit that moved beyond the gate can only be found lost, and
+    the units of a model at a larger scale move further.
+    """
+    match_kw.setdefault("gate_mm", max(DEFAULT_GATE_MM, GATE_DN * thresholds.dn_mm))
     analysis = match_units(baseline, current, unit_map=unit_map, **match_kw)
     units, summary = assess(analysis.units, thresholds, section_width_mm=section_width_mm)
     return Assessment(analysis.result, units, summary, analysis.unassigned)

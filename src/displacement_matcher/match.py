@@ -26,7 +26,7 @@ All positions are in the camera frame of :mod:`pose_estimator`, millimetres.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -294,6 +294,7 @@ def match(
     row_gate_mm: NDArray[np.float64] | None = None,
     depth_slack_mm: float = 0.0,
     exclude_pairs: Sequence[tuple[int, int]] = (),
+    identity_codes: Collection[int] = (),
 ) -> MatchResult:
     """Globally optimal partial matching of baseline and current fiducials.
 
@@ -328,6 +329,11 @@ def match(
     exclude_pairs : sequence of (int, int)
         ``(baseline_index, current_index)`` pairs that may not be matched (ruled out by
         unit-level reasoning).
+    identity_codes : collection of int
+        Codes printed on one fiducial only (an explicit unit map's codes): a fiducial of such a
+        code seen once before and once now is that fiducial wherever it went, so the pair is
+        matched whatever its cost, beyond the gate too (a unit thrown 4 Dn is displaced, not
+        lost), unless ``exclude_pairs`` rules it out. The gate still governs every other pair.
 
     Returns
     -------
@@ -374,6 +380,13 @@ def match(
         ok = np.isfinite(rg)
         row_gate[ok] = np.minimum(gate, rg[ok])
 
+    forced_i, forced_j = _identity_pairs(a, b, identity_codes, exclude_pairs)
+    if len(forced_i):
+        # The identified fiducials leave the optimisation: none of their other pairs is a choice.
+        a_free = np.ones(n, dtype=bool)
+        b_free = np.ones(m, dtype=bool)
+        a_free[forced_i] = False
+        b_free[forced_j] = False
     if n and m:
         ei, ej = _candidates(a, b, params)
         ec = _pair_costs(a, b, ei, ej, params)
@@ -386,12 +399,15 @@ def match(
             if bad:
                 keys = ei.astype(np.int64) * m + ej
                 keep &= ~np.isin(keys, np.fromiter(bad, dtype=np.int64, count=len(bad)))
+        if len(forced_i):
+            keep &= a_free[ei] & b_free[ej]
         ei, ej, ec = ei[keep], ej[keep], ec[keep]
     else:
         ei = ej = np.zeros(0, dtype=np.intp)
         ec = np.zeros(0)
 
     mi, mj, n_comp, largest = _solve(ei, ej, ec, n, m, unmatched)
+    mi, mj = np.r_[mi, forced_i].astype(np.intp), np.r_[mj, forced_j].astype(np.intp)
 
     order = np.argsort(mi, kind="stable")
     mi, mj = mi[order], mj[order]
@@ -439,6 +455,36 @@ def match(
         n_comp,
         largest,
     )
+
+
+def _identity_pairs(
+    a: _PoseSet,
+    b: _PoseSet,
+    identity_codes: Collection[int],
+    exclude_pairs: Sequence[tuple[int, int]],
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Usable-array rows ``(i, j)`` of the fiducials identified by their code (see
+    :func:`match`): a code of ``identity_codes`` seen exactly once in each set."""
+    codes = {int(c) for c in identity_codes}
+    if not codes or len(a) == 0 or len(b) == 0:
+        empty = np.zeros(0, dtype=np.intp)
+        return empty, empty
+    ca, cb = a.code.astype(np.int64), b.code.astype(np.int64)
+    ua, na = np.unique(ca, return_counts=True)
+    ub, nb = np.unique(cb, return_counts=True)
+    once = np.intersect1d(ua[na == 1], ub[nb == 1])
+    once = once[np.isin(once, np.fromiter(codes, dtype=np.int64, count=len(codes)))]
+    ii = np.flatnonzero(np.isin(ca, once))
+    jj = np.flatnonzero(np.isin(cb, once))
+    ii, jj = ii[np.argsort(ca[ii])], jj[np.argsort(cb[jj])]  # both sorted by code: paired
+    if len(exclude_pairs):
+        excluded = {(int(i), int(j)) for i, j in exclude_pairs}
+        ok = [
+            (int(a.index[i]), int(b.index[j])) not in excluded
+            for i, j in zip(ii.tolist(), jj.tolist(), strict=True)
+        ]
+        ii, jj = ii[ok], jj[ok]
+    return ii.astype(np.intp), jj.astype(np.intp)
 
 
 def _solve(

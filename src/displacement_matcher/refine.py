@@ -132,6 +132,10 @@ def match_units(
     """
     if refine_passes < 0:
         raise MatcherError(f"refine_passes must be >= 0, got {refine_passes}")
+    if unit_map is not None and unit_map.units:
+        # An explicit map puts every code on one fiducial: seen once before and once now, it is
+        # that fiducial however far it went (match's identity_codes).
+        match_kw.setdefault("identity_codes", frozenset(c for u in unit_map.units for c in u.codes))
     result = match(baseline, current, **match_kw)
     groups = assign_units(result, unit_map=unit_map, span_mm=span_mm, rigid_tol_mm=rigid_tol_mm)
     kw: dict[str, Any] = {

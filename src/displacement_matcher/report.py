@@ -215,8 +215,11 @@ def overlay_image(
     else:
         img = np.asarray(after_image)
         if img.dtype != np.uint8:
-            scale = 255.0 / max(float(np.iinfo(img.dtype).max), 1.0) if img.dtype.kind == "u" else 1
-            img = np.clip(img.astype(np.float64) * scale, 0, 255).astype(np.uint8)
+            # Stretched to its brightest pixel, for display: a 12-bit camera's frames in 16-bit
+            # containers (or a [0, 1] float image) would be near black against the type's range.
+            top = float(np.nanmax(img)) if img.size else 0.0
+            scale = 255.0 / top if top > 0 else 1.0
+            img = np.clip(np.nan_to_num(img.astype(np.float64)) * scale, 0, 255).astype(np.uint8)
         if img.ndim == 2:
             canvas = np.asarray(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
         elif img.shape[2] == 4:

@@ -269,13 +269,24 @@ class CameraModel:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> CameraModel:
-        """Load a camera_calibration YAML file.
+        """Load a camera_calibration YAML file, or the YAML file OpenCV's calibration writes
+        (``cv2.FileStorage``: ``!!opencv-matrix`` entries ``image_width``, ``image_height``,
+        ``camera_matrix`` / ``cameraMatrix``, ``distortion_coefficients`` / ``distCoeffs``).
 
         Raises
         ------
         CalibrationError
             If the file cannot be read or lacks, or has malformed, required fields.
         """
+        try:
+            with open(path, "rb") as f:
+                head = f.read(1 << 16)
+            # OpenCV's dialect: a "%YAML:1.0" directive (older) or !!opencv-matrix tags.
+            opencv = head.startswith(b"%YAML:") or b"!!opencv-matrix" in head
+        except OSError:
+            opencv = False  # load_yaml names the problem
+        if opencv:
+            return cls._from_opencv_storage(Path(path))
         try:
             doc = load_yaml(path)
         except YamlFileError as err:
@@ -284,6 +295,49 @@ class CameraModel:
             raise CalibrationError(f"calibration {path} is not a YAML mapping")
         try:
             return cls.from_dict(doc)
+        except CalibrationError as err:
+            raise CalibrationError(f"calibration {path}: {err}") from err
+
+    @classmethod
+    def _from_opencv_storage(cls, path: Path) -> CameraModel:
+        """A ``cv2.FileStorage`` calibration (see :meth:`from_yaml`)."""
+        try:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        except (cv2.error, SystemError) as err:  # OpenCV's parser error surfaces as either
+            cause = err.__cause__ if isinstance(err, SystemError) and err.__cause__ else err
+            msg = " ".join(str(cause).split())
+            raise CalibrationError(f"cannot read calibration {path} (OpenCV YAML): {msg}") from err
+
+        def node(*names: str) -> Any:
+            for name in names:
+                found = fs.getNode(name)
+                if not found.empty():
+                    return found
+            raise CalibrationError(f"calibration {path}: missing field {' / '.join(names)}")
+
+        try:
+            width = node("image_width").real()
+            height = node("image_height").real()
+            k = node("camera_matrix", "cameraMatrix").mat()
+            d_node = fs.getNode("distortion_coefficients")
+            if d_node.empty():
+                d_node = fs.getNode("distCoeffs")
+            d = np.zeros(5) if d_node.empty() else d_node.mat()
+        finally:
+            fs.release()
+        if k is None or d is None or np.asarray(k).size != 9:
+            raise CalibrationError(f"calibration {path}: camera_matrix must be a 3x3 matrix")
+        d = np.asarray(d, dtype=np.float64).ravel()
+        models = {4: "plumb_bob", 5: "plumb_bob", 8: "rational_polynomial"}
+        if d.size not in models:
+            raise CalibrationError(
+                f"calibration {path}: {d.size} distortion coefficients; plumb_bob (4 or 5) and "
+                "rational_polynomial (8) are supported"
+            )
+        if d.size == 4:
+            d = np.append(d, 0.0)  # k1 k2 p1 p2 without k3
+        try:
+            return cls.from_camera_info(int(width), int(height), k, models[d.size], d)
         except CalibrationError as err:
             raise CalibrationError(f"calibration {path}: {err}") from err
 

@@ -16,14 +16,44 @@ class YamlFileError(ValueError):
     """A YAML file that cannot be read or parsed (one-line message naming file and place)."""
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` refusing a key given twice in one mapping.
+
+    YAML says keys are unique, but PyYAML lets the last one win silently: a copied block in a
+    unit map would drop a unit, a second ``distortion_coefficients`` replace the first.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        # Merge keys (<<) override by design; such a mapping is left to PyYAML.
+        if isinstance(node, yaml.MappingNode) and not any(
+            k.tag == "tag:yaml.org,2002:merge" for k, _ in node.value
+        ):
+            first: dict[Any, Any] = {}
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    seen = first.get(key)
+                except TypeError:
+                    continue  # an unhashable key: PyYAML's own error names it
+                if seen is not None:
+                    raise yaml.constructor.ConstructorError(
+                        "while constructing a mapping",
+                        node.start_mark,
+                        f"key {key!r} given twice (first at line {seen.line + 1})",
+                        key_node.start_mark,
+                    )
+                first[key] = key_node.start_mark
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_yaml(path: str | Path) -> Any:
-    """Parse a YAML file (``yaml.safe_load``).
+    """Parse a YAML file (``yaml.safe_load``, but a key given twice in one mapping is an error).
 
     Raises
     ------
     YamlFileError
         If the file cannot be read (``"PATH: reason"``), or is not valid YAML (``"PATH: not
-        valid YAML at line L, column C: problem"``).
+        valid YAML at line L, column C: problem"``, also for a key given twice).
     """
     try:
         text = Path(path).read_text()
@@ -31,7 +61,7 @@ def load_yaml(path: str | Path) -> Any:
         reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
         raise YamlFileError(f"{path}: {reason}") from err
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader: no arbitrary objects
     except yaml.YAMLError as err:
         raise YamlFileError(f"{path}: {_one_line(err)}") from err
 

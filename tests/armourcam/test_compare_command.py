@@ -122,3 +122,46 @@ def test_compare_human_summary_and_bad_inputs(
     args = ["compare", str(d / "before.png"), "--after", str(d / "after.png"), *base]
     assert main([*args, "--units", str(bad_units)]) == 2
     assert "unknown code 500" in capsys.readouterr().err
+
+
+def test_a_comparison_that_measured_nothing_says_so_and_fails(
+    scene: tuple[Field, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """No fiducial found (the wrong design asked for, a blank frame) or none found again
+    (another scene): an error naming why, exit 1, never a plain "displaced 0"."""
+    _, d = scene
+    base = ["--camera", str(d / "camera.yaml"), "--out", str(tmp_path / "r")]
+    pair = [str(d / "before.png"), "--after", str(d / "after.png")]
+    assert main(["compare", *pair, *base, "--design", "dot"]) == 1
+    err = capsys.readouterr().err
+    assert "no fiducial found in the 1 BEFORE image" in err
+    assert "no fiducial found in the 1 AFTER image" in err
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((800, 1200), 200, np.uint8))
+    assert main(["compare", str(d / "before.png"), "--after", str(blank), *base]) == 1
+    err = capsys.readouterr().err
+    assert "AFTER" in err and "BEFORE image" not in err
+    # Fiducials on both sides, none paired (distinct codes of another scene): also nothing.
+    from armourcam.commands.compare import _measured_nothing
+
+    counts = {"same_code": 0, "cross_code": 0, "vanished": 39, "appeared": 12}
+    (message,) = _measured_nothing([object()] * 39, [object()] * 12, counts, 1, 2)
+    assert message.startswith("none of the 39 BEFORE fiducials was found again among the 12")
+
+
+def test_fiducials_outside_the_unit_map_are_named(
+    scene: tuple[Field, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A unit map that leaves codes out: the summary is not silent about the fiducials in no
+    unit (they were only in the JSON, as indices)."""
+    f, d = scene
+    first, *rest = f.geometry.codes
+    umap = tmp_path / "one.yaml"
+    umap.write_text(yaml.safe_dump({"units": {"A": {"codes": [int(first)]}}}))
+    args = ["compare", str(d / "before.png"), "--after", str(d / "before.png")]
+    args += ["--camera", str(d / "camera.yaml"), "--out", str(tmp_path / "r"), "--units", str(umap)]
+    assert main(args) == 0
+    (line,) = [s for s in capsys.readouterr().err.splitlines() if "not in the unit map" in s]
+    listed = line.split("(")[1].split(")")[0]
+    assert line.endswith("they are in no unit") and listed
+    assert {int(c) for c in listed.split(", ")} <= {int(c) for c in rest}

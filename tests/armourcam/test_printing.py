@@ -396,7 +396,7 @@ def test_cli_writes_pdf_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[st
     back = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
     assert back is not None and back.shape == (336, 336)
     out = capsys.readouterr().out
-    assert "64 ring targets" in out and "dot target 9" in out
+    assert "64 ring targets" in out and "ring target 9" in out  # ring: the default
 
 
 @pytest.mark.parametrize(

@@ -248,3 +248,30 @@ def test_prediction_row_gate_and_excluded_pairs() -> None:
         match(base, cur, prediction_mm=np.zeros((3, 3)))
     with pytest.raises(MatcherError, match="row_gate_mm must have"):
         match(base, cur, row_gate_mm=np.zeros(5))
+
+
+def test_identity_codes_are_matched_beyond_the_gate_and_only_when_seen_once() -> None:
+    """A code printed once (an explicit unit map's) seen once in each set is that fiducial,
+    however far it went; a code seen twice on a side, an excluded pair and every other code
+    still follow the gate."""
+    far = np.array([0.0, 80.0, 0.0])
+    base = [
+        make_pose(3, [0.0, 0.0, 800.0]),
+        make_pose(4, [150.0, 0, 800]),
+        make_pose(5, [300.0, 0, 800]),
+    ]
+    cur = [make_pose(3, base[0].position_mm + far), make_pose(4, base[1].position_mm + far)]
+    cur += [make_pose(5, base[2].position_mm + far), make_pose(5, [-300.0, 0, 800])]
+    plain = match(base, cur)
+    assert not [d for d in plain.displacements if d.is_match]  # all beyond the 50 mm gate
+    got = match(base, cur, identity_codes={3, 4, 5})
+    pairs = {(d.baseline_index, d.current_index) for d in got.displacements if d.is_match}
+    assert pairs == {(0, 0), (1, 1)}  # code 5 is seen twice now: left to the gate
+    (d0,) = [d for d in got.displacements if d.baseline_index == 0]
+    assert d0.label == "same_code"
+    np.testing.assert_allclose(d0.displacement_mm, far)
+    assert got.total_cost == pytest.approx(sum(d.cost for d in got.displacements))
+    excluded = match(base, cur, identity_codes={3, 4}, exclude_pairs=[(0, 0)])
+    assert {(d.baseline_index, d.current_index) for d in excluded.displacements if d.is_match} == {
+        (1, 1)
+    }

@@ -91,3 +91,16 @@ def test_report_of_empty_and_rejected_inputs(tmp_path: Path) -> None:
     assert doc["fiducials"] == [] and doc["rejected"][0]["reason"].startswith("position_mm")
     assert doc["summary"]["displaced_units"] is None
     assert report_dict(match([], []))["params"]["gate_mm"] > 0
+
+
+@pytest.mark.parametrize(
+    "after", [np.full((40, 60), 2000, np.uint16), np.full((40, 60, 3), 0.5, np.float32)]
+)
+def test_overlay_shows_12_bit_and_float_frames(after: np.ndarray) -> None:
+    """A 12-bit camera's frame in a 16-bit container, or a float frame, is shown stretched to
+    its brightest pixel, not near black against the type's range."""
+    from displacement_matcher.report import overlay_image
+
+    canvas = overlay_image(match([], []), CameraModel.ideal(60, 40, 100.0), after)
+    assert canvas.shape == (40, 60, 3) and canvas.dtype == np.uint8
+    assert np.all(canvas == 255)

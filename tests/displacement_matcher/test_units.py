@@ -175,3 +175,45 @@ def test_units_with_empty_and_nan_inputs() -> None:
     assert [u.status for u in an.units] == ["lost"]
     assert an.units[0].baseline_indices == (1,)
     assert [r.index for r in an.result.rejected] == [0]
+
+
+def test_a_unit_given_twice_in_a_map_is_an_error(tmp_path: pytest.TempPathFactory) -> None:
+    """A copied block with the id left unchanged would silently drop the first unit."""
+    path = tmp_path / "units.yaml"  # type: ignore[operator]
+    path.write_text("units:\n  U00: {codes: [0, 1, 2]}\n  U00: {codes: [3, 4, 5]}\n")
+    with pytest.raises(
+        MatcherError, match=r"line 3, column 3: key 'U00' given twice \(first at line 2\)"
+    ):
+        load_unit_map(path)
+
+
+def test_a_mapped_unit_thrown_far_is_displaced_and_the_gate_follows_dn() -> None:
+    """With a unit map (codes printed once) a unit thrown 4 Dn is measured, not lost; without
+    one, the gate grows with Dn (a 45 mm unit moved 1.5 Dn is matched)."""
+    from displacement_matcher.compare import compare_poses
+    from displacement_matcher.damage import thresholds
+    from displacement_matcher.units import parse_unit_map
+
+    nrm = np.array([0.0, 0.0, -1.0])
+    cov = np.eye(3) * 0.01
+    base = [FiducialPose(c, np.array([40.0 * c, 0.0, 800.0]), nrm, cov) for c in range(6)]
+    throw = np.array([0.0, 82.0, 0.0])  # 4 Dn of 20.5 mm
+    cur = [
+        FiducialPose(p.code, p.position_mm + (throw if p.code < 2 else 0.0), nrm, cov) for p in base
+    ]
+    umap = parse_unit_map({"units": {f"U{k}": {"codes": [2 * k, 2 * k + 1]} for k in range(3)}})
+    a = compare_poses(base, cur, thresholds(20.5), unit_map=umap)
+    by = {u.unit: u for u in a.units}
+    assert by["U0"].status == "displaced"
+    np.testing.assert_allclose(by["U0"].translation_mm, throw, atol=1e-6)
+    assert a.summary.displaced_units == 1
+
+    move = np.array([0.0, 67.5, 0.0])  # 1.5 Dn of 45 mm: beyond 50 mm, within 2.4 Dn
+    cur = [
+        FiducialPose(p.code, p.position_mm + (move if p.code < 2 else 0.0), nrm, cov) for p in base
+    ]
+    small = compare_poses(base, cur, thresholds(20.5))
+    large = compare_poses(base, cur, thresholds(45.0))
+    assert small.result.params.gate_mm == 50.0 and large.result.params.gate_mm == 108.0
+    assert large.summary.displaced_units == 1
+    assert small.summary.displaced_units == 0

@@ -216,3 +216,51 @@ def test_invalid_yaml_is_one_line_naming_file_and_place(tmp_path: Path) -> None:
     message = str(info.value)
     assert "\n" not in message
     assert message.startswith(f"cannot read calibration {path}: not valid YAML at line 3, column 1")
+
+
+@pytest.mark.parametrize("n_coefficients", [4, 5, 8])
+def test_opencv_calibration_files_are_read(tmp_path: Path, n_coefficients: int) -> None:
+    """The YAML OpenCV's calibration writes (cv2.FileStorage, !!opencv-matrix) gives the same
+    camera as the camera_calibration file of the same numbers."""
+    import cv2
+
+    coeffs = {4: MODELS["plumb_bob"][:4], 5: MODELS["plumb_bob"]}
+    d = coeffs.get(n_coefficients, MODELS["rational_polynomial"])
+    path = tmp_path / "opencv.yaml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 3008)
+    fs.write("image_height", 2000)
+    fs.write("camera_matrix", np.array(K))
+    fs.write("distortion_coefficients", np.array([d]))
+    fs.release()
+    cam = CameraModel.from_yaml(path)
+    model = "rational_polynomial" if n_coefficients == 8 else "plumb_bob"
+    want = CameraModel.from_camera_info(
+        3008, 2000, np.ravel(K), model, (d + [0.0] * 5)[: max(5, len(d))]
+    )
+    assert (cam.width, cam.height, cam.distortion_model) == (3008, 2000, model)
+    np.testing.assert_array_equal(cam.K, want.K)
+    np.testing.assert_array_equal(cam.D, want.D)
+
+    (tmp_path / "short.yaml").write_text("%YAML:1.0\n---\nimage_width: 3008\n")
+    with pytest.raises(CalibrationError, match=r"short\.yaml: missing field image_height"):
+        CameraModel.from_yaml(tmp_path / "short.yaml")
+
+
+def test_a_key_given_twice_is_an_error_naming_both_lines(tmp_path: Path) -> None:
+    """PyYAML lets the last of two equal keys win silently: a pasted second
+    distortion_coefficients would change every depth without a word."""
+    good = CameraModel.from_camera_info(3008, 2000, np.ravel(K), "plumb_bob", MODELS["plumb_bob"])
+    text = yaml.safe_dump(good.to_dict(), sort_keys=False)
+    path = tmp_path / "twice.yaml"
+    path.write_text(text + "distortion_coefficients: {rows: 1, cols: 5, data: [0, 0, 0, 0, 0]}\n")
+    first = 1 + text.splitlines().index(
+        next(s for s in text.splitlines() if s.startswith("distortion_coefficients"))
+    )
+    last = len(text.splitlines()) + 1
+    with pytest.raises(CalibrationError) as info:
+        CameraModel.from_yaml(path)
+    assert str(info.value) == (
+        f"cannot read calibration {path}: not valid YAML at line {last}, column 1: key "
+        f"'distortion_coefficients' given twice (first at line {first})"
+    )

@@ -60,7 +60,13 @@ def register(subparsers: Any) -> None:
     p.add_argument("--overturn-deg", type=float, default=90.0, help="overturned from (90 deg)")
     p.add_argument("--lost-displaced", action="store_true", help="count lost units as displaced")
     p.add_argument("--section-width-mm", type=float, help="section width along the crest (N_od)")
-    p.add_argument("--gate-mm", type=float, default=None, help="matching gate, mm")
+    p.add_argument(
+        "--gate-mm",
+        type=float,
+        default=None,
+        help="matching gate, mm: a fiducial moved further is not matched (default: 50 mm or "
+        "2.4 Dn, whichever is longer; a unit map's codes are matched at any distance)",
+    )
     p.add_argument("--code-penalty-mm", type=float, default=None, help="cross-code penalty, mm")
     p.add_argument("--no-cross-code", action="store_true", help="forbid cross-code matches")
     p.set_defaults(func=run)
@@ -168,4 +174,35 @@ def run(args: argparse.Namespace) -> int:
         )
         print(cmp.summary.describe())
         print(f"report written to {args.out}")
-    return 1 if failed else 0
+    problems = _measured_nothing(
+        before, after, cmp.result.counts(), len(before_imgs), len(after_imgs)
+    )
+    for message in problems:
+        print(f"armourcam compare: error: {message}", file=sys.stderr)
+    if cmp.unassigned:
+        codes = sorted({int(before[i].code) for i in cmp.unassigned})
+        print(
+            f"armourcam compare: warning: {len(cmp.unassigned)} BEFORE fiducials have codes not "
+            f"in the unit map ({', '.join(map(str, codes))}); they are in no unit",
+            file=sys.stderr,
+        )
+    return 1 if failed or problems else 0
+
+
+def _measured_nothing(
+    before: list[Any], after: list[Any], counts: dict[str, int], n_before: int, n_after: int
+) -> list[str]:
+    """Why a comparison measured nothing (a report of "nothing displaced" would be a lie)."""
+    out = []
+    for name, poses, n in (("BEFORE", before, n_before), ("AFTER", after, n_after)):
+        if not poses:
+            out.append(
+                f"no fiducial found in the {n} {name} image{'s' if n > 1 else ''} (wrong "
+                "--design or --diameter-mm, out of focus, another scene?): nothing was measured"
+            )
+    if before and after and counts["same_code"] + counts["cross_code"] == 0:
+        out.append(
+            f"none of the {len(before)} BEFORE fiducials was found again among the "
+            f"{len(after)} AFTER ones (another scene, or the camera moved?): nothing was measured"
+        )
+    return out

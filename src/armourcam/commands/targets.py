@@ -21,7 +21,11 @@ def register(subparsers: Any) -> None:
         ),
     )
     parser.add_argument(
-        "--design", choices=sorted(DESIGNS), default="dot", help="fiducial design (default dot)"
+        "--design",
+        choices=sorted(DESIGNS),
+        default="ring",
+        help="fiducial design (default ring: the outer annulus carries the pose, several times "
+        "more precise in depth than the paper's dot)",
     )
     parser.add_argument(
         "--codes", default="0-63", help="codes to print, e.g. '0-63' or '3,5,10-12' (default 0-63)"
