@@ -628,12 +628,13 @@ class Replayer:
         if confirm_topic:
             from sensor_msgs.msg import PointCloud2
 
-            node.create_subscription(
-                PointCloud2, confirm_topic, self._on_confirm, stream_qos("reliable", 100)
-            )
+            # The graph's outputs have the replay's QoS: a reliable reader would not match the
+            # best-effort writers of a sensor_data graph, and every frame would time out.
+            watch = stream_qos(qos, 100)
+            node.create_subscription(PointCloud2, confirm_topic, self._on_confirm, watch)
             if downstream_topic:
                 self.downstream_sub = node.create_subscription(
-                    PointCloud2, downstream_topic, self._on_downstream, stream_qos("reliable", 100)
+                    PointCloud2, downstream_topic, self._on_downstream, watch
                 )
 
     def _on_confirm(self, msg: Any) -> None:
@@ -842,6 +843,7 @@ def replay_bag(
         # between are not delivered to a volatile reader. Give discovery a moment to finish.
         time.sleep(match_grace_s)
         last_ns = [0]
+        restamped: dict[tuple[int, int], Any] = {}  # recorded stamp -> new (the latest few)
         last_info: list[tuple[str, str, Any]] = []
         t0_bag: int | None = None
         t0_wall = time.monotonic()
@@ -854,7 +856,16 @@ def replay_bag(
                     time.sleep(delay)
             msg = bagio.copy_message(obj, message_class(msgtype))
             if restamp and hasattr(msg, "header"):
-                msg.header.stamp = _stamp_now(node, last_ns)
+                # One new stamp per recorded stamp: an image and its camera info stay paired
+                # for exact-time synchronisers (image_proc, viewers).
+                old = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+                new = restamped.get(old)
+                if new is None:
+                    new = _stamp_now(node, last_ns)
+                    restamped[old] = new
+                    while len(restamped) > 16:
+                        del restamped[next(iter(restamped))]
+                msg.header.stamp = new
             replayer.publisher(topic, msgtype).publish(msg)
             published[topic] = published.get(topic, 0) + 1
             if msgtype == "sensor_msgs/msg/CameraInfo":

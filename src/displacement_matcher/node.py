@@ -15,10 +15,12 @@ Subscribed
     ``run_active_topic`` (default ``/hall/run_active``), ``std_msgs/Bool``;
     ``run_id_topic`` (default ``/hall/run_id``), ``std_msgs/String``;
     ``capture_baseline_topic`` (default ``/armourcam/capture_baseline``), ``std_msgs/Empty``.
-    Run state and id: RELIABLE + TRANSIENT_LOCAL, depth 10 (a restarted node is told the
-    hall's latched state; of the messages published before the node started only the latest
-    state is applied, so finished runs are not measured twice; volatile publishers match as
-    well). The capture command: RELIABLE, VOLATILE (a restart never re-captures).
+    Run state and id: each subscribed twice, RELIABLE + TRANSIENT_LOCAL, depth 10 (a restarted
+    node is told the hall's latched state; of the messages published before the node started
+    only the latest state is applied, so finished runs are not measured twice) and RELIABLE +
+    VOLATILE (a hall publishing volatile, which a transient-local reader never matches); a
+    message both deliver is applied once. The capture command: RELIABLE, VOLATILE (a restart
+    never re-captures).
 Published (latched: RELIABLE + TRANSIENT_LOCAL, depth 1, so a late subscriber gets the last run)
     ``markers_topic`` (default ``/armourcam/markers``), ``visualization_msgs/MarkerArray``:
     arrows baseline -> current in **metres** (REP 103), green for same-code, red for cross-code
@@ -45,6 +47,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -271,8 +274,13 @@ class DisplacementMatcherNode(Node):
         self._start_ns = self.get_clock().now().nanoseconds
         self._historic: dict[str, Any] = {}
         self._historic_timer: Any = None
-        self.create_subscription(Bool, cfg.run_active_topic, self._on_run_active, event_qos())
-        self.create_subscription(String, cfg.run_id_topic, self._on_run_id, event_qos())
+        # Two subscriptions per hall topic: transient-local for the latched state of a hall that
+        # latches, volatile for a hall that does not (a transient-local reader never matches a
+        # volatile writer). A message both deliver is applied once (_first_delivery).
+        self._delivered: deque[tuple[str, int]] = deque(maxlen=64)
+        for qos in (event_qos(), stream_qos("reliable", 10)):
+            self.create_subscription(Bool, cfg.run_active_topic, self._on_run_active, qos)
+            self.create_subscription(String, cfg.run_id_topic, self._on_run_id, qos)
         # A command is not state: volatile, so a restart never re-captures the baseline.
         self.create_subscription(
             Empty, cfg.capture_baseline_topic, self._on_capture, stream_qos("reliable", 10)
@@ -334,7 +342,17 @@ class DisplacementMatcherNode(Node):
         if events:
             self._handle(events)
 
+    def _first_delivery(self, topic: str, info: Any) -> bool:
+        """False for a hall message already taken from the other subscription of its topic."""
+        key = (topic, int(info["source_timestamp"]))
+        if key in self._delivered:
+            return False
+        self._delivered.append(key)
+        return True
+
     def _on_run_active(self, msg: Bool, info: Any) -> None:
+        if not self._first_delivery("active", info):
+            return
         if self._is_history(info, "active", bool(msg.data)):
             return
         self._apply_history()  # history first: it happened before this live event
@@ -343,6 +361,8 @@ class DisplacementMatcherNode(Node):
         self._handle(self.session.set_run_active(bool(msg.data), stamp))
 
     def _on_run_id(self, msg: String, info: Any) -> None:
+        if not self._first_delivery("run_id", info):
+            return
         if self._is_history(info, "run_id", msg.data):
             return
         self._apply_history()

@@ -383,6 +383,16 @@ class Session:
         if self._run_active:
             return [Notice("warn", "capture_baseline ignored: a run is active")]
         self._capture_requested = True
+        if self.phase == Phase.SETTLING:
+            # The run is measured against the old baseline first: capturing now would throw the
+            # run away and make its after-state the new reference.
+            return [
+                Notice(
+                    "info",
+                    f"capture_baseline: after run {self._current_run_id} is measured, from "
+                    f"{self.config.baseline_frames} frames",
+                )
+            ]
         self._window.clear()
         self.phase = Phase.CAPTURING_BASELINE
         return [Notice("info", f"capturing baseline from {self.config.baseline_frames} frames")]
@@ -706,6 +716,8 @@ class Session:
         self._current_run_id = None
         self._window.clear()
         self.phase = Phase.MONITORING if self.baseline is not None else Phase.WAITING_BASELINE
+        if self._capture_requested:
+            self.phase = Phase.CAPTURING_BASELINE  # asked for while the run settled
         self._save_state()
         events.append(RunCompleted(run))
         return events

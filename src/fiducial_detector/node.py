@@ -117,13 +117,6 @@ class DetectorNodeConfig:
     decimate: int
     diagnostics_period_s: float
 
-    @property
-    def input_topic(self) -> str:
-        """The topic actually subscribed."""
-        if self.transport == "compressed":
-            return self.image_topic.rstrip("/") + "/compressed"
-        return self.image_topic
-
 
 class FiducialDetectorNode(Node):
     """Images in, detections out (one message per decodable frame)."""
@@ -139,19 +132,25 @@ class FiducialDetectorNode(Node):
         if not cfg.image_topic or not cfg.detections_topic:
             raise GraphError("fiducial_detector: image_topic and detections_topic must be set")
         qos = stream_qos(cfg.qos, cfg.queue_depth)
+        # The transport's topic follows the base topic as remapped (``-r /camera/image_raw:=
+        # /cam2/image_raw`` moves ``.../compressed`` too), as image_transport does.
+        topic = self.resolve_topic_name(cfg.image_topic)
+        if cfg.transport == "compressed":
+            topic = topic.rstrip("/") + "/compressed"
+        self.input_topic = topic
         self._pub = self.create_publisher(
             PointCloud2, cfg.detections_topic, record_qos(cfg.qos, cfg.queue_depth)
         )
         self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         msg_type: Any = CompressedImage if cfg.transport == "compressed" else Image
-        self._sub = self.create_subscription(msg_type, cfg.input_topic, self._on_image, qos)
+        self._sub = self.create_subscription(msg_type, topic, self._on_image, qos)
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
         self.received = self.published = self.dropped = 0
         self.problems = RecentProblems()
         self.frame_times = FrameTimes()
         self.get_logger().info(
-            f"detecting on {cfg.input_topic} ({msg_type.__name__}, {cfg.qos}) -> "
-            f"{cfg.detections_topic}"
+            f"detecting on {self._sub.topic_name} ({msg_type.__name__}, {cfg.qos}) -> "
+            f"{self._pub.topic_name}"
         )
 
     def _on_image(self, msg: Any) -> None:
@@ -191,7 +190,7 @@ class FiducialDetectorNode(Node):
             self._diag,
             level=self.problems.level(),
             message=self.problems.message() or "ok",
-            hardware_id=self.config.input_topic,
+            hardware_id=self.input_topic,
             values={
                 "frames_received": str(self.received),
                 "frames_published": str(self.published),

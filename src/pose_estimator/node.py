@@ -159,7 +159,9 @@ class PoseEstimatorNode(Node):
         self._pub = self.create_publisher(PointCloud2, cfg.poses_topic, records)
         self._pub_array = self.create_publisher(PoseArray, cfg.pose_array_topic, qos)
         self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(PointCloud2, cfg.detections_topic, self._on_detections, records)
+        sub = self.create_subscription(
+            PointCloud2, cfg.detections_topic, self._on_detections, records
+        )
         if self.camera is None:
             self.create_subscription(CameraInfo, cfg.camera_info_topic, self._on_camera_info, qos)
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
@@ -168,10 +170,10 @@ class PoseEstimatorNode(Node):
         self.received = self.published = self.dropped = 0
         self.problems = RecentProblems()
         self.frame_times = FrameTimes()
-        source = cfg.calibration_file or cfg.camera_info_topic
-        self.get_logger().info(
-            f"poses from {cfg.detections_topic} with camera from {source} -> {cfg.poses_topic}, "
-            f"{cfg.pose_array_topic}"
+        source = cfg.calibration_file or self.resolve_topic_name(cfg.camera_info_topic)
+        self.get_logger().info(  # the names as remapped
+            f"poses from {sub.topic_name} with camera from {source} -> {self._pub.topic_name}, "
+            f"{self._pub_array.topic_name}"
         )
 
     def _check_parameters(self, params: list[Any]) -> SetParametersResult:

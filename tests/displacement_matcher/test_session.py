@@ -656,3 +656,27 @@ def test_a_lagging_clock_does_not_make_a_baseline_of_frames_after_the_run(
     assert not of_type(events, BaselineCaptured) and s.baseline is None
     (done,) = of_type(events, RunCompleted)
     assert done.run.report["error"] == "no baseline"
+
+
+def test_capture_baseline_while_a_run_settles_measures_the_run_first(
+    rng: np.random.Generator,
+) -> None:
+    """The command arriving between the stop and the settled frames used to throw the run
+    away (never measured, its after-state made the reference): the run is measured against the
+    old baseline, then the new baseline is captured from the next frames."""
+    truth0 = scene(16)
+    truth1 = moved(truth0, [1], [6.0, 0, 0])
+    s = make(baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    s.set_run_id("A")
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    (note,) = s.capture_baseline()
+    assert note.level == "info" and "after run A is measured" in note.text
+    assert s.phase == Phase.SETTLING
+    (done,) = of_type(feed(s, [frame(truth1, rng) for _ in range(2)], 2.5), RunCompleted)
+    assert done.run.run_id == "A"
+    assert np.linalg.norm(disp_by_before(done.run.report, truth0)[4] - [6.0, 0, 0]) < 0.5
+    assert s.phase == Phase.CAPTURING_BASELINE
+    (cap,) = of_type(feed(s, [frame(truth1, rng) for _ in range(2)], 3.0), BaselineCaptured)
+    assert cap.baseline.reason == "command" and s.phase == Phase.MONITORING

@@ -108,3 +108,30 @@ def test_a_non_finite_parameter_stops_the_node_at_start_up(nodes: Nodes) -> None
         assert proc.wait(timeout=30) == 2, nodes.log(label)
         (name,) = params
         assert f"parameter {name} must be a finite number" in nodes.log(label)
+
+
+def test_a_remapped_image_topic_moves_the_compressed_transport_too(
+    nodes: Nodes, probe: Probe
+) -> None:
+    """``-r /camera/image_raw:=/cam2/image_raw`` with ``transport: compressed`` subscribes to
+    ``/cam2/image_raw/compressed`` (it stayed on ``/camera/...``), as image_transport does."""
+    from sensor_msgs.msg import CompressedImage, PointCloud2
+
+    nodes.start(
+        "fiducial_detector",
+        "-r",
+        "/camera/image_raw:=/cam2/image_raw",
+        params={"transport": "compressed"},
+        label="cam2",
+    )
+    qos = stream_qos("reliable", 10)
+    pub = probe.node.create_publisher(CompressedImage, "/cam2/image_raw/compressed", qos)
+    out: list[Any] = []
+    probe.node.create_subscription(PointCloud2, "/armourcam/detections", out.append, qos)
+    assert probe.spin_until(lambda: pub.get_subscription_count() > 0, 20.0), nodes.log("cam2")
+    probe.spin_for(1.0)
+    ok, buf = cv2.imencode(".jpg", np.full((120, 160), 128, np.uint8))
+    assert ok
+    pub.publish(CompressedImage(format="jpeg", data=buf.tobytes()))
+    assert probe.spin_until(lambda: out, 20.0), nodes.log("cam2")
+    assert "detecting on /cam2/image_raw/compressed" in nodes.log("cam2")

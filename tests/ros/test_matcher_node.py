@@ -273,3 +273,40 @@ def test_a_data_dir_that_fails_mid_session_loses_nothing_and_the_node_lives_on(
         5.0,
     )
     assert nodes.alive("displacement_matcher")
+
+
+def test_a_hall_publishing_volatile_drives_the_runs(
+    nodes: Nodes, probe: Probe, tmp_path: Path
+) -> None:
+    """rclpy's and rclcpp's default publisher is volatile, which a transient-local reader never
+    matches: the matcher also listens volatile, and applies a message once however many of its
+    subscriptions deliver it (the latched hall of the other tests drives both)."""
+    from std_msgs.msg import Bool, String
+
+    from armourcam.graph import stream_qos
+
+    data = tmp_path / "data"
+    hall, truth0 = _matcher_with_baseline(nodes, probe, data)
+    assert probe.spin_until(lambda: (data / "baseline.json").exists(), 20.0)
+    active = probe.node.create_publisher(Bool, "/hall/run_active", stream_qos("reliable", 10))
+    run_id = probe.node.create_publisher(String, "/hall/run_id", stream_qos("reliable", 10))
+    assert probe.spin_until(lambda: active.get_subscription_count() >= 1, 20.0)
+    probe.spin_for(0.5)
+    late = Latched(probe)
+    truth1 = truth0.copy()
+    truth1[:4] += [10.0, 0.0, 0.0]
+    run_id.publish(String(data="wave-V"))
+    active.publish(Bool(data=True))
+    probe.spin_for(0.3)
+    active.publish(Bool(data=False))
+    probe.spin_for(0.3)
+    hall.frames(truth1, 3)
+    assert probe.spin_until(lambda: any(r["run_id"] == "wave-V" for r in late.reports), 20.0), (
+        nodes.log("displacement_matcher")
+    )
+    # The latched hall's messages reach both subscriptions: still one run per start and stop.
+    hall.run("wave-L", truth1)
+    assert probe.spin_until(lambda: any(r["run_id"] == "wave-L" for r in late.reports), 20.0)
+    probe.spin_for(1.0)
+    names = sorted(p.name for p in data.glob("runs/*.json"))
+    assert names == ["0001-wave-V.json", "0002-wave-L.json"], names
