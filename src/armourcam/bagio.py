@@ -42,6 +42,7 @@ Conversions:
 
 - :func:`camera_model_from_info` ``(msg) -> CameraModel`` (ROS 1 ``K``/``D`` or ROS 2 ``k``/``d``);
   :func:`camera_info_fields` ``(camera, *, style="rclpy"|"rosbags") -> dict``.
+- :func:`normal_type` ``(msgtype)``: ``pkg/Name`` -> ``pkg/msg/Name`` (ROS 1 and 2 spellings).
 - :func:`stamp_to_ns` / :func:`ns_to_stamp_fields`; :func:`copy_message` ``(src, dst_class)``:
   field-by-field copy of a message into another implementation's class (e.g. a ROS 1 bag's
   CameraInfo into rclpy's ``sensor_msgs.msg.CameraInfo``; names matched case-insensitively).
@@ -703,8 +704,8 @@ class Bag:
 
     def topics_of_type(self, *msgtypes: str) -> list[str]:
         """Topics whose type is one of ``msgtypes`` (``pkg/msg/Name``; ``pkg/Name`` accepted)."""
-        want = {_normal_type(m) for m in msgtypes}
-        return [t for t, info in self._topics.items() if _normal_type(info.msgtype) in want]
+        want = {normal_type(m) for m in msgtypes}
+        return [t for t, info in self._topics.items() if normal_type(info.msgtype) in want]
 
     def image_topic(self, topic: str | None = None) -> str:
         """The image topic: ``topic`` checked, or the only Image/CompressedImage topic.
@@ -749,7 +750,7 @@ class Bag:
                 f"{self.path}: no {what} topic ({' or '.join(msgtypes)}); "
                 f"topics: {[f'{t} [{i.msgtype}]' for t, i in self._topics.items()]}"
             )
-        raw = [t for t in candidates if _normal_type(self._topics[t].msgtype) == msgtypes[0]]
+        raw = [t for t in candidates if normal_type(self._topics[t].msgtype) == msgtypes[0]]
         if len(raw) == 1 and len(msgtypes) > 1:
             return raw[0]
         raise BagError(f"{self.path}: several {what} topics {candidates}; choose one")
@@ -786,11 +787,11 @@ class Bag:
             If a message cannot be read or deserialised (naming its index and topic).
         """
         topic_set = set(topics) if topics is not None else None
-        type_set = {_normal_type(m) for m in msgtypes} if msgtypes is not None else None
+        type_set = {normal_type(m) for m in msgtypes} if msgtypes is not None else None
 
         def keep(topic: str, msgtype: str) -> bool:
             return (topic_set is None or topic in topic_set) and (
-                type_set is None or _normal_type(msgtype) in type_set
+                type_set is None or normal_type(msgtype) in type_set
             )
 
         if topic_set is not None and (missing := sorted(topic_set - set(self._topics))):
@@ -948,7 +949,7 @@ def _types_from_msg_bundle(text: str, name: str) -> dict[str, Any]:
     return types
 
 
-def _normal_type(msgtype: str) -> str:
+def normal_type(msgtype: str) -> str:
     """``pkg/Name`` -> ``pkg/msg/Name`` (ROS 1 and ROS 2 spellings compare equal)."""
     parts = msgtype.split("/")
     return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else msgtype
@@ -1034,7 +1035,7 @@ class BagWriter:
     def new(self, msgtype: str, **fields: Any) -> Any:
         """A rosbags message object of ``msgtype`` (every field must be given)."""
         try:
-            cls = self.typestore.types[_normal_type(msgtype)]
+            cls = self.typestore.types[normal_type(msgtype)]
         except KeyError:
             raise BagError(f"unknown message type {msgtype!r}") from None
         return cls(**fields)
@@ -1074,7 +1075,7 @@ class BagWriter:
             If the topic exists with another type, both ``latched`` and ``offered_qos`` are
             given, or a profile is not a QoS profile.
         """
-        msgtype = _normal_type(msgtype)
+        msgtype = normal_type(msgtype)
         conn = self._connections.get(topic)
         if conn is not None:
             if conn.msgtype != msgtype:
@@ -1292,8 +1293,8 @@ def qos_from_profile(profile: Any) -> Any:
     profile : object
         A rosbags ``Qos`` (returned as it is), or read by duck typing like an rclpy
         ``QoSProfile`` (e.g. from ``Node.get_publishers_info_by_topic``): ``history``,
-        ``reliability``, ``durability``, ``liveliness`` (enums, matched by member name; names
-        rosbags lacks become ``UNKNOWN``), ``depth``, ``deadline``, ``lifespan``,
+        ``reliability``, ``durability``, ``liveliness`` (enums or member names, matched by
+        name; names rosbags lacks become ``UNKNOWN``), ``depth``, ``deadline``, ``lifespan``,
         ``liveliness_lease_duration`` (durations with ``nanoseconds``; rclpy's infinite duration
         becomes 9223372036 s 854775807 ns, rosbag2's infinite) and
         ``avoid_ros_namespace_conventions``.
@@ -1320,7 +1321,7 @@ def qos_from_profile(profile: Any) -> Any:
         return profile
 
     def policy(enum: Any, value: Any) -> Any:
-        name = getattr(value, "name", None)
+        name = value if isinstance(value, str) else getattr(value, "name", None)
         if isinstance(name, str) and name in enum.__members__:
             return enum[name]
         return enum.UNKNOWN
@@ -1346,23 +1347,20 @@ def qos_from_profile(profile: Any) -> Any:
 
 
 def _latched_qos() -> Any:
-    from rosbags.interfaces import (
-        Qos,
-        QosDurability,
-        QosHistory,
-        QosLiveliness,
-        QosReliability,
-        QosTime,
-    )
+    """RELIABLE + TRANSIENT_LOCAL, KEEP_LAST 1 (the matcher's latched outputs) as a rosbags
+    ``Qos``, through :func:`qos_from_profile` (policies by name, durations zero)."""
+    from types import SimpleNamespace
 
-    return Qos(
-        QosHistory.KEEP_LAST,
-        1,
-        QosReliability.RELIABLE,
-        QosDurability.TRANSIENT_LOCAL,
-        QosTime(0, 0),
-        QosTime(0, 0),
-        QosLiveliness.AUTOMATIC,
-        QosTime(0, 0),
-        False,
+    return qos_from_profile(
+        SimpleNamespace(
+            history="KEEP_LAST",
+            depth=1,
+            reliability="RELIABLE",
+            durability="TRANSIENT_LOCAL",
+            deadline=0,
+            lifespan=0,
+            liveliness="AUTOMATIC",
+            liveliness_lease_duration=0,
+            avoid_ros_namespace_conventions=False,
+        )
     )

@@ -677,8 +677,9 @@ class Replayer:
           matcher's markers): :func:`latched_qos`, as the matcher publishes them;
         - anything else: :func:`stream_qos`.
         """
-        if msgtype.count("/") == 1:  # ROS 1 spelling pkg/Name
-            msgtype = msgtype.replace("/", "/msg/", 1)
+        from armourcam.bagio import normal_type
+
+        msgtype = normal_type(msgtype)  # a ROS 1 bag's pkg/Name
         if msgtype.startswith("std_msgs/"):
             return event_qos()
         if msgtype in (*IMAGE_TYPES, "sensor_msgs/msg/CameraInfo"):
@@ -965,9 +966,8 @@ def record_topics(
             t_end = None if duration is None else time.monotonic() + duration
             while not stop.is_set():
                 if pending:
-                    listed = dict(node.get_topic_names_and_types())
                     for topic in sorted(pending):
-                        infos = node.get_publishers_info_by_topic(topic) if topic in listed else []
+                        infos = node.get_publishers_info_by_topic(topic)
                         if not infos:
                             continue  # no publisher yet: its QoS decides the subscription's
                         msgtype = infos[0].topic_type

@@ -381,16 +381,15 @@ def match(
         row_gate[ok] = np.minimum(gate, rg[ok])
 
     forced_i, forced_j = _identity_pairs(a, b, identity_codes, exclude_pairs)
-    if len(forced_i):
-        # The identified fiducials leave the optimisation: none of their other pairs is a choice.
-        a_free = np.ones(n, dtype=bool)
-        b_free = np.ones(m, dtype=bool)
-        a_free[forced_i] = False
-        b_free[forced_j] = False
+    # The identified fiducials leave the optimisation: none of their other pairs is a choice.
+    a_free = np.ones(n, dtype=bool)
+    b_free = np.ones(m, dtype=bool)
+    a_free[forced_i] = False
+    b_free[forced_j] = False
     if n and m:
         ei, ej = _candidates(a, b, params)
         ec = _pair_costs(a, b, ei, ej, params)
-        keep = ec < row_gate[ei]
+        keep = (ec < row_gate[ei]) & a_free[ei] & b_free[ej]
         if len(exclude_pairs):
             # Usable-array positions of the excluded (input-index) pairs.
             pos_a = {int(x): k for k, x in enumerate(a.index.tolist())}
@@ -399,8 +398,6 @@ def match(
             if bad:
                 keys = ei.astype(np.int64) * m + ej
                 keep &= ~np.isin(keys, np.fromiter(bad, dtype=np.int64, count=len(bad)))
-        if len(forced_i):
-            keep &= a_free[ei] & b_free[ej]
         ei, ej, ec = ei[keep], ej[keep], ec[keep]
     else:
         ei = ej = np.zeros(0, dtype=np.intp)

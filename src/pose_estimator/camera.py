@@ -308,21 +308,21 @@ class CameraModel:
             msg = " ".join(str(cause).split())
             raise CalibrationError(f"cannot read calibration {path} (OpenCV YAML): {msg}") from err
 
-        def node(*names: str) -> Any:
+        def node(*names: str, required: bool = True) -> Any:
             for name in names:
                 found = fs.getNode(name)
                 if not found.empty():
                     return found
-            raise CalibrationError(f"calibration {path}: missing field {' / '.join(names)}")
+            if required:
+                raise CalibrationError(f"calibration {path}: missing field {' / '.join(names)}")
+            return None
 
         try:
             width = node("image_width").real()
             height = node("image_height").real()
             k = node("camera_matrix", "cameraMatrix").mat()
-            d_node = fs.getNode("distortion_coefficients")
-            if d_node.empty():
-                d_node = fs.getNode("distCoeffs")
-            d = np.zeros(5) if d_node.empty() else d_node.mat()
+            d_node = node("distortion_coefficients", "distCoeffs", required=False)
+            d = np.zeros(5) if d_node is None else d_node.mat()
         finally:
             fs.release()
         if k is None or d is None or np.asarray(k).size != 9:
