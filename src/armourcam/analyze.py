@@ -6,8 +6,15 @@ The bag's messages are taken in log-time order and fed to the same code the node
 drive it exactly as on the rig; frames and hall events are ordered by bag log time). Outputs:
 
 - ``DIR/report.json``: ``{"bag", "baseline", "runs": [report, ...], "frames": {...}}`` where each
-  run report has the keys of ``armourcam compare --json`` (plus ``run_id``, ``incremental``...),
-  and ``DIR/runs/<NNNN>-<run_id>.json`` one file per run;
+  run report has the keys of ``armourcam compare --json`` (plus ``run_id``, ``incremental``...);
+- ``DIR/runs/<NNNN>-<run_id>/`` per run (``NNNN`` its 1-based sequence, characters of the run id
+  other than letters, digits and ``._-`` replaced by ``_``): the files of ``armourcam compare
+  --out``, written by the same :func:`displacement_matcher.report.write_report_files` as soon as
+  the run is measured: ``report.json`` (the run's report, with ``inputs``: the bag and topics it
+  was measured from), ``fiducials.csv``, ``units.csv``, ``plot.png`` (all of the cumulative
+  displacement, against the baseline; the incremental one is in ``report.json``) and
+  ``overlay.png``, the vectors on the last frame fused into the run's after-set (a run with no
+  frame after it has no overlay: no image shows its state);
 - ``DIR/markers``: a ROS 2 MCAP bag (Foxglove / RViz) with, per run, the latched
   ``/armourcam/markers`` (``visualization_msgs/MarkerArray``, metres), ``/armourcam/report``
   (``std_msgs/String``) and ``/armourcam/displacements`` (PointCloud2 of DisplacementRecord), and
@@ -21,6 +28,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +36,7 @@ from typing import Any
 
 from displacement_matcher.atomic import write_atomic
 from displacement_matcher.markers import Comparer, displacement_records
+from displacement_matcher.report import write_report_files
 from displacement_matcher.session import (
     BaselineCaptured,
     Event,
@@ -136,6 +145,11 @@ def analyze_bag(
         camera = calibration
         # Only now, with the bag's topics checked: a refused request leaves no empty directory.
         out_dir.mkdir(parents=True, exist_ok=True)
+        inputs = {"bag": str(bag_path), "topics": dict(result.topics)}
+        # The frames last given to the session, by stamp: a run is measured on its last frame
+        # or, when the next run's first frame ends its settling, on the one before. Two frames
+        # are all the overlay needs to hold.
+        recent: deque[tuple[float, Any]] = deque(maxlen=2)
         with bagio.BagWriter(markers_path) as out:
             frame_id = ""
 
@@ -148,6 +162,9 @@ def analyze_bag(
                     elif isinstance(ev, RunCompleted):
                         result.runs.append(ev.run)
                         write_run_outputs(out, ev.run, t_ns, frame_id)
+                        stamp = ev.run.report.get("stamp_s")
+                        after = next((img for t, img in recent if t == stamp), None)
+                        write_run_report(out_dir, ev.run, inputs, camera, after)
 
             for k, m in enumerate(bag.messages(wanted, on_truncation="report")):
                 t_s = m.timestamp_ns * 1e-9
@@ -171,6 +188,7 @@ def analyze_bag(
                         result.notices.append(f"error: frame {result.frames} dropped: {err}")
                         continue
                     result.fiducials_per_frame.append(len(poses))
+                    recent.append((t_s, image))
                     out.write_records(
                         "/armourcam/poses",
                         records.POSE,
@@ -193,7 +211,7 @@ def analyze_bag(
                 result.notices.append(f"warn: {result.truncation}")
     if session.baseline is not None:
         result.baseline_fiducials = len(session.baseline.poses)
-    write_reports(out_dir, bag_path, result)
+    write_summary_report(out_dir, bag_path, result)
     return result
 
 
@@ -209,18 +227,33 @@ def _json_safe(obj: Any) -> Any:
     return obj
 
 
-def write_reports(out_dir: Path, bag_path: Path, result: AnalysisResult) -> None:
-    """``report.json`` and one ``runs/<NNNN>-<run_id>.json`` per run."""
-    runs_dir = out_dir / "runs"
-    runs_dir.mkdir(parents=True, exist_ok=True)
-    # Each run's file stands alone: it names the bag and topics it was measured from.
-    inputs = {"bag": str(bag_path), "topics": result.topics}
-    for run in result.runs:
-        safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in run.run_id)
-        write_atomic(
-            runs_dir / f"{run.sequence:04d}-{safe}.json",
-            json.dumps(_json_safe({**run.report, "inputs": inputs}), indent=1).encode(),
-        )
+def run_dir(out_dir: Path, run: RunRecord) -> Path:
+    """``out_dir/runs/<NNNN>-<run_id>``, the directory of one run's report files."""
+    safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in run.run_id)
+    return out_dir / "runs" / f"{run.sequence:04d}-{safe}"
+
+
+def write_run_report(
+    out_dir: Path,
+    run: RunRecord,
+    inputs: dict[str, Any],
+    camera: CameraModel | None,
+    after_image: Any,
+) -> Path:
+    """One run's report files in :func:`run_dir` (the files of ``armourcam compare --out``).
+
+    The overlay is drawn on ``after_image`` and written only with an image and a camera.
+    """
+    # Each run's report stands alone: it names the bag and topics it was measured from.
+    doc = _json_safe({**run.report, "inputs": inputs})
+    where = run_dir(out_dir, run)
+    with_overlay = after_image is not None and camera is not None
+    write_report_files(where, doc, camera=camera if with_overlay else None, after_image=after_image)
+    return where
+
+
+def write_summary_report(out_dir: Path, bag_path: Path, result: AnalysisResult) -> None:
+    """``out_dir/report.json``: the bag, its topics, frame counts, the baseline and every run."""
     doc = {
         "bag": str(bag_path),
         "topics": result.topics,

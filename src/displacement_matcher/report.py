@@ -1,15 +1,37 @@
 """Report files of a comparison: JSON, CSV per fiducial and per unit, overlay and plot PNGs.
 
-The JSON has the keys of ``armourcam compare --json``: ``fiducials`` (label, codes, positions and
-displacement per entry), ``units`` (id, translation, rotation, status), ``summary`` (damage counts
-with their thresholds), plus ``rejected`` poses and the matching ``params``. The overlay draws the
-displacement vectors on the after image the way the paper's Figure 8 does: green for same-code
-pairs, red for cross-code pairs; vanished fiducials are marked with a yellow circle at their
-baseline position, appeared ones with a blue one. Positions are camera frame, mm; pixels ``(u, v)``
-with pixel centres at integer coordinates.
+The JSON has the keys of ``armourcam compare --json``: ``fiducials`` (label, unit, codes,
+positions and displacement per entry), ``units`` (id, translation, rotation, status, reference
+point), ``summary`` (damage counts with their thresholds), plus ``rejected`` poses and the
+matching ``params``. The overlay draws the displacement vectors on the after image the way the
+paper's Figure 8 does: green for same-code pairs, red for cross-code pairs; vanished fiducials are
+marked with a yellow circle at their baseline position, appeared ones with a blue one. Positions
+are camera frame, mm; pixels ``(u, v)`` with pixel centres at integer coordinates.
+
+The CSVs are plain rectangular tables (one header row, no comment lines), so a spreadsheet,
+``csv.DictReader`` or ``pandas.read_csv`` opens them without options, and rows of several runs
+can be pasted or concatenated into one table and still say what they were measured against.
+Columns are only ever appended, so scripts that index them by position keep working:
+
+- ``fiducials.csv``, one row per fiducial: ``label, baseline_index, current_index, code_before,
+  code_after, before_{x,y,z}_mm, after_{x,y,z}_mm, displacement_{x,y,z}_mm, distance_mm,
+  sigma_{x,y,z}_mm, cost, unit``. ``unit`` is the unit the fiducial belonged to in the baseline;
+  for an appeared fiducial the unit it was attached to, empty when none (or for a baseline
+  fiducial whose code is in no unit of the unit map).
+- ``units.csv``, one row per unit: ``unit, status, displaced, translation_{x,y,z}_mm,
+  distance_mm, rotation_deg, method, overturned, n_matched, n_vanished, n_appeared,
+  n_cross_code, codes, reference_before_{x,y,z}_mm`` (the point whose displacement
+  ``translation`` is: the unit's origin when its template locates it, else the centroid of its
+  baseline fiducials), then the thresholds the status was decided with, repeated on every row:
+  ``dn_mm, displaced_threshold_mm, moved_threshold_mm, rotated_threshold_deg,
+  overturn_threshold_deg`` (empty when the report has no damage summary). Repeating them costs a
+  few bytes a row; as ``#`` comment lines above the header they would break the header row of
+  every reader above, and be lost the moment rows are sorted, filtered or pasted elsewhere.
 
 Every file is written atomically (a temporary file in the same directory, then ``os.replace``), so
-a reader never sees half a report and a crash never leaves one behind.
+a reader never sees half a report and a crash never leaves one behind. :func:`write_report_files`
+writes the whole set from a report mapping; ``armourcam compare``, ``armourcam demo`` and
+``armourcam analyze`` all write through it, so their report directories hold the same files.
 """
 
 from __future__ import annotations
@@ -18,7 +40,7 @@ import csv
 import io
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -56,11 +78,13 @@ def report_dict(
     unassigned: Sequence[int] = (),
 ) -> dict[str, Any]:
     """The report as a JSON-ready mapping (see the module docstring)."""
+    unit_of = _unit_of_fiducial(units)
     fids = []
     for d in result.displacements:
         fids.append(
             {
                 "label": d.label,
+                "unit": unit_of(d.baseline_index, d.current_index),
                 "baseline_index": d.baseline_index,
                 "current_index": d.current_index,
                 "code_before": d.code_before,
@@ -144,6 +168,34 @@ def report_dict(
     return out
 
 
+def _unit_of_fiducial(
+    units: Sequence[UnitMotion],
+) -> Callable[[int | None, int | None], str | None]:
+    """``unit_of(baseline_index, current_index)``: the id of the unit a fiducial belongs to.
+
+    A fiducial seen in the baseline belongs to the unit that holds it there, even when it was
+    paired with another unit's fiducial (a cross-code pair): its unit is what moved. Only an
+    appeared fiducial (no baseline index) is looked up on the current side, where the units list
+    the fiducials they were attached to. None when no unit holds it.
+    """
+    base: dict[int, str] = {}
+    cur: dict[int, str] = {}
+    for u in units:
+        for i in u.baseline_indices:
+            base.setdefault(int(i), u.unit)
+        for j in u.current_indices:
+            cur.setdefault(int(j), u.unit)
+
+    def unit_of(baseline_index: int | None, current_index: int | None) -> str | None:
+        if baseline_index is not None:
+            return base.get(int(baseline_index))
+        if current_index is not None:
+            return cur.get(int(current_index))
+        return None
+
+    return unit_of
+
+
 def _displaced_states(summary: DamageSummary | None) -> set[str]:
     states = {"displaced"}
     if summary is None or summary.thresholds.overturned_displaced:
@@ -162,10 +214,10 @@ def _csv_bytes(header: list[str], rows: list[list[Any]]) -> bytes:
 
 
 def fiducials_csv(report: dict[str, Any]) -> bytes:
-    """Per-fiducial CSV of a :func:`report_dict` mapping."""
+    """Per-fiducial CSV of a :func:`report_dict` mapping (columns: the module docstring)."""
     header = ["label", "baseline_index", "current_index", "code_before", "code_after"]
     header += [f"{k}_{a}_mm" for k in ("before", "after", "displacement") for a in "xyz"]
-    header += ["distance_mm", "sigma_x_mm", "sigma_y_mm", "sigma_z_mm", "cost"]
+    header += ["distance_mm", "sigma_x_mm", "sigma_y_mm", "sigma_z_mm", "cost", "unit"]
     rows = []
     for f in report["fiducials"]:
         row = [
@@ -178,23 +230,46 @@ def fiducials_csv(report: dict[str, Any]) -> bytes:
         for k in ("before_mm", "after_mm", "displacement_mm"):
             row += f[k] if f[k] is not None else ["", "", ""]
         row += [f["distance_mm"]] + (f["sigma_mm"] or ["", "", ""]) + [f["cost"]]
+        # Reports written before the unit was recorded per fiducial have no "unit" key.
+        row.append(f.get("unit"))
         rows.append(["" if v is None else v for v in row])
     return _csv_bytes(header, rows)
 
 
+#: ``units.csv`` threshold columns and their keys in ``summary["thresholds"]``.
+_THRESHOLD_COLUMNS = (
+    ("dn_mm", "dn_mm"),
+    ("displaced_threshold_mm", "displaced_mm"),
+    ("moved_threshold_mm", "moved_mm"),
+    ("rotated_threshold_deg", "rotated_deg"),
+    ("overturn_threshold_deg", "overturn_deg"),
+)
+
+
 def units_csv(report: dict[str, Any]) -> bytes:
-    """Per-unit CSV of a :func:`report_dict` mapping."""
+    """Per-unit CSV of a :func:`report_dict` mapping (columns: the module docstring)."""
     header = ["unit", "status", "displaced", "translation_x_mm", "translation_y_mm"]
     header += ["translation_z_mm", "distance_mm", "rotation_deg", "method", "overturned"]
     header += ["n_matched", "n_vanished", "n_appeared", "n_cross_code", "codes"]
+    header += ["reference_before_x_mm", "reference_before_y_mm", "reference_before_z_mm"]
+    header += [name for name, _ in _THRESHOLD_COLUMNS]
+    # A failed run's report has an empty summary: its threshold cells stay empty.
+    limits = (report.get("summary") or {}).get("thresholds") or {}
+    thresholds = [limits.get(key) for _, key in _THRESHOLD_COLUMNS]
     rows = []
     for u in report["units"]:
         tr = u["translation_mm"] or [None, None, None]
         row = [u["unit"], u["status"], u["displaced"], *tr, u["distance_mm"], u["rotation_deg"]]
         row += [u["method"], u["overturned"], u["n_matched"], u["n_vanished"], u["n_appeared"]]
         row += [u["n_cross_code"], " ".join(str(c) for c in u["codes"])]
+        row += u.get("reference_mm") or [None, None, None]
+        row += thresholds
         rows.append(["" if v is None else v for v in row])
     return _csv_bytes(header, rows)
+
+
+#: One fiducial as the overlay draws it: label, before and after positions (camera frame, mm).
+_Vector = tuple[str, NDArray[np.float64] | None, NDArray[np.float64] | None]
 
 
 def overlay_image(
@@ -210,6 +285,39 @@ def overlay_image(
     before point to the after point, green for a same-code pair and red for a cross-code pair
     (paper, Figure 8). Vanished fiducials: yellow circle at the before point; appeared: blue.
     """
+    vectors = [(d.label, d.before_mm, d.after_mm) for d in result.displacements]
+    return _draw_overlay(vectors, camera, after_image, thickness)
+
+
+def overlay_from_report(
+    report: dict[str, Any],
+    camera: CameraModel,
+    after_image: NDArray[np.generic] | None = None,
+    *,
+    thickness: int = 2,
+) -> NDArray[np.uint8]:
+    """:func:`overlay_image` of a :func:`report_dict` mapping (a stored or published report).
+
+    The positions are the report's, rounded to 0.1 um: the drawing is the result's to the pixel.
+    """
+    vectors = [
+        (str(f["label"]), _position(f.get("before_mm")), _position(f.get("after_mm")))
+        for f in report["fiducials"]
+    ]
+    return _draw_overlay(vectors, camera, after_image, thickness)
+
+
+def _position(v: Sequence[float | None] | None) -> NDArray[np.float64] | None:
+    # A report writes a non-finite coordinate as null; NaN keeps the point off the drawing.
+    return None if v is None else np.array([np.nan if c is None else c for c in v], np.float64)
+
+
+def _draw_overlay(
+    vectors: Sequence[_Vector],
+    camera: CameraModel,
+    after_image: NDArray[np.generic] | None,
+    thickness: int,
+) -> NDArray[np.uint8]:
     if after_image is None:
         canvas = np.full((camera.height, camera.width, 3), 255, dtype=np.uint8)
     else:
@@ -236,18 +344,21 @@ def overlay_image(
             return None
         return round(uv[0]), round(uv[1])
 
-    for d in result.displacements:
-        a, b = px(d.before_mm), px(d.after_mm)
-        if d.is_match and a is not None and b is not None:
-            color = GREEN if d.label == "same_code" else RED
+    for label, before, after in vectors:
+        a, b = px(before), px(after)
+        if label in _PAIRS and a is not None and b is not None:
+            color = GREEN if label == "same_code" else RED
             cv2.circle(canvas, a, max(2, thickness + 1), color, -1, cv2.LINE_AA)
             if a != b:
                 cv2.arrowedLine(canvas, a, b, color, thickness, cv2.LINE_AA, tipLength=0.2)
-        elif d.label == "vanished" and a is not None:
+        elif label == "vanished" and a is not None:
             cv2.circle(canvas, a, radius, YELLOW, thickness, cv2.LINE_AA)
-        elif d.label == "appeared" and b is not None:
+        elif label == "appeared" and b is not None:
             cv2.circle(canvas, b, radius, BLUE, thickness, cv2.LINE_AA)
     return canvas
+
+
+_PAIRS = ("same_code", "cross_code")
 
 
 def magnitude_plot(
@@ -261,15 +372,41 @@ def magnitude_plot(
     One bar per pair (green same-code, red cross-code) against a millimetre axis, with the
     displacement and movement thresholds as dashed lines when ``summary`` is given.
     """
+    pairs = [d for d in result.displacements if d.is_match]
+    mags = [np.nan if d.distance_mm is None else d.distance_mm for d in pairs]
+    limits = None
+    if summary is not None:
+        limits = (summary.thresholds.displaced_mm, summary.thresholds.moved_mm)
+    return _draw_magnitudes(mags, [d.label == "same_code" for d in pairs], limits, size)
+
+
+def magnitude_plot_from_report(
+    report: dict[str, Any], *, size: tuple[int, int] = (960, 540)
+) -> NDArray[np.uint8]:
+    """:func:`magnitude_plot` of a :func:`report_dict` mapping (thresholds from its summary)."""
+    pairs = [f for f in report["fiducials"] if f["label"] in _PAIRS]
+    mags = [np.nan if f.get("distance_mm") is None else f["distance_mm"] for f in pairs]
+    t = (report.get("summary") or {}).get("thresholds")
+    limits = (float(t["displaced_mm"]), float(t["moved_mm"])) if t else None
+    return _draw_magnitudes(mags, [f["label"] == "same_code" for f in pairs], limits, size)
+
+
+def _draw_magnitudes(
+    magnitudes: Sequence[float],
+    same_code: Sequence[bool],
+    limits: tuple[float, float] | None,
+    size: tuple[int, int],
+) -> NDArray[np.uint8]:
+    """Bars of ``magnitudes`` (mm), largest first; ``limits``: (displaced, moved) thresholds."""
     w, h = size
     img = np.full((h, w, 3), 255, dtype=np.uint8)
     left, right, top, bottom = 70, 20, 40, 50
-    pairs = [d for d in result.displacements if d.is_match]
-    mags = np.array([d.distance_mm for d in pairs], dtype=np.float64)
+    mags = np.asarray(magnitudes, dtype=np.float64).reshape(-1)
+    shown = mags[np.isfinite(mags)]
     order = np.argsort(-mags, kind="stable")
-    limit = float(mags.max()) if len(mags) else 1.0
-    if summary is not None:
-        limit = max(limit, summary.thresholds.displaced_mm)
+    limit = float(shown.max()) if len(shown) else 1.0
+    if limits is not None:
+        limit = max(limit, limits[0])
     limit = max(limit * 1.1, 1e-3)
     x0, x1, y0, y1 = left, w - right, h - bottom, top
     black = (0, 0, 0)
@@ -283,21 +420,22 @@ def magnitude_plot(
         cv2.line(img, (x0 - 5, y), (x0, y), black, 1)
         cv2.putText(img, f"{v:g}", (5, y + 5), font, 0.45, black, 1, cv2.LINE_AA)
         v += step
-    title = f"displacement of {len(pairs)} matched fiducials (mm), largest first"
+    n = len(mags)
+    title = f"displacement of {n} matched fiducials (mm), largest first"
     cv2.putText(img, title, (x0, 25), font, 0.55, black, 1, cv2.LINE_AA)
     cv2.putText(img, "fiducials", (x1 - 80, h - 15), font, 0.45, black, 1, cv2.LINE_AA)
-    n = len(pairs)
     if n:
         bw = (x1 - x0) / n
         for rank, k in enumerate(order.tolist()):
+            if not math.isfinite(mags[k]):
+                continue  # no length to draw (sorted last, so the ranks of the others hold)
             ya = round(y0 - (y0 - y1) * mags[k] / limit)
             xa = round(x0 + rank * bw)
             xb = max(xa, round(x0 + (rank + 1) * bw) - 1)
-            color = GREEN if pairs[k].label == "same_code" else RED
+            color = GREEN if same_code[k] else RED
             cv2.rectangle(img, (xa, ya), (xb, y0 - 1), color, -1)
-    if summary is not None:
-        t = summary.thresholds
-        for val, name in ((t.displaced_mm, "displaced"), (t.moved_mm, "moved")):
+    if limits is not None:
+        for val, name in ((limits[0], "displaced"), (limits[1], "moved")):
             y = round(y0 - (y0 - y1) * val / limit)
             for xs in range(x0, x1, 12):
                 cv2.line(img, (xs, y), (min(xs + 6, x1), y), (90, 90, 90), 1)
@@ -332,8 +470,45 @@ def write_report(
     unassigned: Sequence[int] = (),
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Path]:
+    """:func:`write_report_files` of the :func:`report_dict` of a comparison (plus ``extra``).
+
+    Returns
+    -------
+    dict of str to Path
+        ``{"json", "fiducials_csv", "units_csv", "plot", "overlay"}`` (``overlay`` only with a
+        camera).
+    """
+    rep = report_dict(result, units, summary, unassigned=unassigned)
+    if extra:
+        rep.update(extra)
+    return write_report_files(out_dir, rep, camera=camera, after_image=after_image)
+
+
+def write_report_files(
+    out_dir: str | Path,
+    report: dict[str, Any],
+    *,
+    camera: CameraModel | None = None,
+    after_image: NDArray[np.generic] | None = None,
+) -> dict[str, Path]:
     """Write ``report.json``, ``fiducials.csv``, ``units.csv``, ``plot.png`` and, with a camera,
-    ``overlay.png`` into ``out_dir``, each atomically.
+    ``overlay.png`` of a :func:`report_dict` mapping into ``out_dir``, each atomically.
+
+    The one writer of a report directory (``compare --out``, each run of ``demo`` and
+    ``analyze``): files and figures are drawn from the mapping alone, so a report read back from
+    disk or from the ``/armourcam/report`` topic gives the same files as the comparison did.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        Created when missing.
+    report : dict
+        A :func:`report_dict` mapping, possibly with more keys (all go to ``report.json``; it
+        must be JSON-ready).
+    camera : CameraModel, optional
+        Projects the overlay; without one no overlay is written.
+    after_image : ndarray, optional
+        The after image under the overlay (grey, BGR or BGRA; blank when None).
 
     Returns
     -------
@@ -342,17 +517,14 @@ def write_report(
         camera).
     """
     out = Path(out_dir)
-    rep = report_dict(result, units, summary, unassigned=unassigned)
-    if extra:
-        rep.update(extra)
     paths = {
-        "json": write_atomic(out / "report.json", (json.dumps(rep, indent=1) + "\n").encode()),
-        "fiducials_csv": write_atomic(out / "fiducials.csv", fiducials_csv(rep)),
-        "units_csv": write_atomic(out / "units.csv", units_csv(rep)),
-        "plot": write_atomic(out / "plot.png", _png(magnitude_plot(result, summary))),
+        "json": write_atomic(out / "report.json", (json.dumps(report, indent=1) + "\n").encode()),
+        "fiducials_csv": write_atomic(out / "fiducials.csv", fiducials_csv(report)),
+        "units_csv": write_atomic(out / "units.csv", units_csv(report)),
+        "plot": write_atomic(out / "plot.png", _png(magnitude_plot_from_report(report))),
     }
     if camera is not None:
         paths["overlay"] = write_atomic(
-            out / "overlay.png", _png(overlay_image(result, camera, after_image))
+            out / "overlay.png", _png(overlay_from_report(report, camera, after_image))
         )
     return paths

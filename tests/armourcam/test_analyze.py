@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from armourcam import bagio, sessionbag
-from armourcam.analyze import AnalyzeError, analyze_bag
+from armourcam.analyze import AnalysisResult, AnalyzeError, analyze_bag
 from displacement_matcher.session import SessionConfig
 
 REPO = Path(__file__).resolve().parents[2]
@@ -41,11 +41,20 @@ def test_session_bag_layout_and_truth(tmp_path: Path) -> None:
     assert truth["runs"][1]["incremental"]["displaced_units"] == 0
 
 
-def test_analyze_session_bag_reports_every_run(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def analyzed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, AnalysisResult]:
+    """The bundled session bag analysed once (the output directory and the result)."""
     truth = sessionbag.read_truth(BAG)
     assert truth is not None
     cfg = SessionConfig(baseline_frames=truth["spec"]["baseline_frames"], settle_frames=3)
-    result = analyze_bag(BAG, tmp_path, session_config=cfg)
+    out = tmp_path_factory.mktemp("analyzed")
+    return out, analyze_bag(BAG, out, session_config=cfg)
+
+
+def test_analyze_session_bag_reports_every_run(analyzed: tuple[Path, AnalysisResult]) -> None:
+    truth = sessionbag.read_truth(BAG)
+    assert truth is not None
+    tmp_path, result = analyzed
     assert result.frames == 17 and result.frames_dropped == 0
     assert [r.run_id for r in result.runs] == ["wave-001", "wave-002"]
     doc = json.loads((tmp_path / "report.json").read_text())
@@ -56,7 +65,7 @@ def test_analyze_session_bag_reports_every_run(tmp_path: Path) -> None:
         assert acc["err_median_mm"] < 1.0
         assert acc["wrong"] <= 2
     assert doc["runs"][1]["incremental"]["summary"]["displaced_units"] == 0
-    run_files = sorted((tmp_path / "runs").glob("*.json"))
+    run_files = sorted((tmp_path / "runs").glob("*/report.json"))
     assert len(run_files) == 2
     for path in run_files:  # each stands alone: it names what it was measured from
         inputs = json.loads(path.read_text())["inputs"]
@@ -76,6 +85,41 @@ def test_analyze_session_bag_reports_every_run(tmp_path: Path) -> None:
                 arrows = [k for k in msg.markers if k.type == 0 and k.action == 0]
                 assert arrows and all(0.0 < k.color.a <= 1.0 for k in arrows)
     assert seen["/armourcam/markers"] == 2 and seen["/armourcam/poses"] == 17
+
+
+def test_analyze_writes_each_runs_report_files(analyzed: tuple[Path, AnalysisResult]) -> None:
+    """Per run, runs/<NNNN>-<run_id>/ holds the files of ``compare --out``: the run's report,
+    both CSVs (agreeing with it), the plot and the overlay on the run's last fused frame."""
+    import csv
+
+    import cv2
+
+    out, result = analyzed
+    doc = json.loads((out / "report.json").read_text())
+    dirs = sorted(p for p in (out / "runs").iterdir() if p.is_dir())
+    named = [f"{r.sequence:04d}-{r.run_id}" for r in result.runs]
+    assert [p.name for p in dirs] == named == ["0001-wave-001", "0002-wave-002"]
+    with bagio.open_bag(BAG) as bag:
+        camera = bag.camera_model()
+    assert camera is not None
+    for run_dir, run in zip(dirs, doc["runs"], strict=True):
+        names = {"report.json", "fiducials.csv", "units.csv", "plot.png", "overlay.png"}
+        assert {p.name for p in run_dir.iterdir()} == names  # and no temporary file left
+        rep = json.loads((run_dir / "report.json").read_text())
+        assert rep["run_id"] == run["run_id"] and rep["fiducials"] == run["fiducials"]
+        fids = list(csv.DictReader((run_dir / "fiducials.csv").read_text().splitlines()))
+        assert [f["label"] for f in fids] == [f["label"] for f in run["fiducials"]]
+        assert [f["unit"] for f in fids] == [f["unit"] or "" for f in run["fiducials"]]
+        units = list(csv.DictReader((run_dir / "units.csv").read_text().splitlines()))
+        assert [u["unit"] for u in units] == [u["unit"] for u in run["units"]]
+        assert all(float(u["dn_mm"]) == run["summary"]["thresholds"]["dn_mm"] for u in units)
+        assert cv2.imread(str(run_dir / "plot.png")) is not None
+        overlay = cv2.imread(str(run_dir / "overlay.png"))
+        assert overlay is not None and overlay.shape == (camera.height, camera.width, 3)
+        # The bag's frame under the vectors, not a blank canvas; same-code vectors in green.
+        assert np.mean(overlay) < 200
+        b, g, r = (overlay[..., k].astype(int) for k in range(3))
+        assert np.any((g > 150) & (r < 120) & (b < 120))
 
 
 def test_analyze_real_ros1_bag_finds_no_fiducials(tmp_path: Path) -> None:

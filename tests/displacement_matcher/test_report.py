@@ -14,7 +14,13 @@ from matcher_synth import make_pose
 
 from displacement_matcher import match
 from displacement_matcher.damage import assess, thresholds
-from displacement_matcher.report import report_dict, write_atomic, write_report
+from displacement_matcher.report import (
+    fiducials_csv,
+    report_dict,
+    units_csv,
+    write_atomic,
+    write_report,
+)
 from displacement_matcher.units import unit_motions
 from pose_estimator.camera import CameraModel
 
@@ -104,3 +110,92 @@ def test_overlay_shows_12_bit_and_float_frames(after: np.ndarray) -> None:
     canvas = overlay_image(match([], []), CameraModel.ideal(60, 40, 100.0), after)
     assert canvas.shape == (40, 60, 3) and canvas.dtype == np.uint8
     assert np.all(canvas == 255)
+
+
+def _rows(data: bytes) -> list[dict[str, str]]:
+    return list(csv.DictReader(data.decode().splitlines()))
+
+
+def test_fiducials_csv_names_the_unit_of_every_fiducial() -> None:
+    """Each fiducial row names its unit: the baseline side's (also for a cross-code pair and a
+    vanished fiducial), the attached unit for an appeared one, empty when no unit took it."""
+    base = [make_pose(1, [0, 0, 800]), make_pose(2, [30, 0, 800]), make_pose(4, [-60, 0, 800])]
+    # Code 9 appears 17 mm from the first unit's fiducials (within its span): attached to it;
+    # code 7 appears far from every unit: attached to none.
+    cur = [
+        make_pose(1, [5, 1, 800]),
+        make_pose(3, [33, 2, 801]),
+        make_pose(9, [50, 0, 800]),
+        make_pose(7, [300, 0, 800]),
+    ]
+    r = match(base, cur, gate_mm=40.0, code_penalty_mm=10.0)
+    units, _ = unit_motions(r, span_mm=35.0)
+    units, summary = assess(units, thresholds(20.0))
+    (first,) = [u.unit for u in units if 0 in u.baseline_indices]
+    (second,) = [u.unit for u in units if 2 in u.baseline_indices]
+    assert first != second and 2 in next(u for u in units if u.unit == first).current_indices
+    rep = report_dict(r, units, summary)
+    rows = _rows(fiducials_csv(rep))
+    assert list(rows[0])[-1] == "unit"  # appended: earlier columns keep their positions
+    got = {(row["label"], row["code_before"] or row["code_after"]): row["unit"] for row in rows}
+    assert got == {
+        ("same_code", "1"): first,
+        ("cross_code", "2"): first,
+        ("vanished", "4"): second,
+        ("appeared", "9"): first,
+        ("appeared", "7"): "",
+    }
+    assert [f["unit"] for f in rep["fiducials"]] == [row["unit"] or None for row in rows]
+
+
+def test_units_csv_has_reference_point_and_thresholds() -> None:
+    """units.csv keeps its columns in order and appends the reference point and, on every row,
+    Dn and the thresholds the statuses were decided with (empty without a damage summary)."""
+    r, units, summary, _ = _scene()
+    rep = report_dict(r, units, summary)
+    data = units_csv(rep)
+    assert not data.startswith(b"#")  # a header row a spreadsheet and DictReader take as such
+    rows = _rows(data)
+    old = ["unit", "status", "displaced", "translation_x_mm", "translation_y_mm"]
+    old += ["translation_z_mm", "distance_mm", "rotation_deg", "method", "overturned"]
+    old += ["n_matched", "n_vanished", "n_appeared", "n_cross_code", "codes"]
+    new = ["reference_before_x_mm", "reference_before_y_mm", "reference_before_z_mm", "dn_mm"]
+    new += ["displaced_threshold_mm", "moved_threshold_mm", "rotated_threshold_deg"]
+    new += ["overturn_threshold_deg"]
+    assert list(rows[0]) == old + new
+    t = summary.thresholds
+    for row, u in zip(rows, units, strict=True):
+        ref = [float(row[f"reference_before_{a}_mm"]) for a in "xyz"]
+        np.testing.assert_allclose(ref, u.reference_before_mm, atol=1e-3)
+        assert float(row["dn_mm"]) == t.dn_mm == 20.0
+        assert float(row["displaced_threshold_mm"]) == t.displaced_mm
+        assert float(row["moved_threshold_mm"]) == t.moved_mm
+        assert float(row["rotated_threshold_deg"]) == t.rotated_deg
+        assert float(row["overturn_threshold_deg"]) == t.overturn_deg
+    # A report without a damage summary (a failed run's) leaves the threshold cells empty.
+    (bare,) = _rows(units_csv({**rep, "units": rep["units"][:1], "summary": {}}))
+    assert [bare[k] for k in new[3:]] == [""] * 5 and bare["reference_before_z_mm"] != ""
+
+
+def test_report_files_from_a_stored_report_match_the_comparisons(tmp_path: Path) -> None:
+    """The one writer works from the report mapping alone: a report read back from its JSON
+    gives the same CSVs, plot and overlay as the comparison wrote."""
+    from displacement_matcher.report import write_report_files
+
+    r, units, summary, _ = _scene()
+    cam = CameraModel.ideal(640, 480, 600.0)
+    after = np.full((480, 640), 90, dtype=np.uint8)
+    first = write_report(tmp_path / "a", r, units, summary, camera=cam, after_image=after)
+    stored = json.loads(first["json"].read_text())
+    again = write_report_files(tmp_path / "b", stored, camera=cam, after_image=after)
+    assert set(again) == set(first)
+    for key, path in first.items():
+        assert again[key].name == path.name
+        assert again[key].read_bytes() == path.read_bytes(), key
+    # Drawn from the report, the figures are the comparison's own to the pixel.
+    from displacement_matcher.report import magnitude_plot, overlay_image
+
+    overlay = cv2.imread(str(again["overlay"]))
+    np.testing.assert_array_equal(overlay, overlay_image(r, cam, after))
+    np.testing.assert_array_equal(cv2.imread(str(again["plot"])), magnitude_plot(r, summary))
+    assert write_report_files(tmp_path / "c", stored).keys() == first.keys() - {"overlay"}

@@ -16,9 +16,10 @@ def register(subparsers: Any) -> None:
         description=(
             "Run detection, pose estimation and the matcher's session (baseline, runs announced "
             "on the hall topics, settling, cumulative and incremental displacement) over a bag "
-            "in log-time order. Writes DIR/report.json, DIR/runs/*.json (the keys of "
-            "'compare --json', one per run) and DIR/markers, an MCAP bag of the markers for "
-            "Foxglove or RViz. Topics are found by type when not given."
+            "in log-time order. Writes DIR/report.json (every run), per run "
+            "DIR/runs/<NNNN>-<run_id>/ with the files of 'compare --out' (report.json, "
+            "fiducials.csv, units.csv, plot.png, overlay.png) and DIR/markers, an MCAP bag of "
+            "the markers for Foxglove or RViz. Topics are found by type when not given."
         ),
     )
     p.add_argument("bag", type=Path, help="bag directory, .mcap file or ROS 1 .bag")
@@ -100,7 +101,10 @@ def run(args: argparse.Namespace) -> int:
     for n in result.notices:
         if not n.startswith("info"):  # the info notices are in the report
             print(f"armourcam analyze: {n}", file=sys.stderr)
-    print(f"report: {args.out / 'report.json'}; markers bag: {args.out / 'markers'}")
+    print(
+        f"report: {args.out / 'report.json'}; per run: {args.out / 'runs'}/<NNNN>-<run_id>/; "
+        f"markers bag: {args.out / 'markers'}"
+    )
     # Some input could not be used: the bag ends early, or no frame could be measured.
     every_frame_dropped = result.frames > 0 and result.frames_dropped == result.frames
     return 1 if result.truncation is not None or every_frame_dropped else 0

@@ -151,94 +151,13 @@ def _wait_runs(data_dir: Path, n_runs: int, timeout: float, procs: dict[str, Any
 
 
 def _write_run_files(out: Path, run: dict[str, Any], camera: Any, after: Any) -> Path:
-    """JSON, CSVs, plot and overlay of one run in OUT/<run_id>/."""
-    from displacement_matcher import report as rep
-    from displacement_matcher.atomic import write_atomic
+    """JSON, CSVs, plot and overlay of one run in OUT/<run_id>/ (the files of ``compare --out``,
+    by the same writer)."""
+    from displacement_matcher.report import write_report_files
 
     run_dir = out / run["run_id"]
-    run_dir.mkdir(parents=True, exist_ok=True)
-    doc = run["report"]
-    write_atomic(run_dir / "report.json", json.dumps(doc, indent=1).encode())
-    write_atomic(run_dir / "fiducials.csv", rep.fiducials_csv(doc))
-    write_atomic(run_dir / "units.csv", rep.units_csv(doc))
-    _figures(run_dir, doc, camera, after)
+    write_report_files(run_dir, run["report"], camera=camera, after_image=after)
     return run_dir
-
-
-def _figures(run_dir: Path, doc: dict[str, Any], camera: Any, after: Any) -> None:
-    """Overlay and plot from the report dict (the report module draws from match results)."""
-    import cv2
-    import numpy as np
-
-    from displacement_matcher import report as rep
-    from displacement_matcher.atomic import write_atomic
-
-    dists = [f["distance_mm"] for f in doc["fiducials"] if f.get("distance_mm") is not None]
-    if hasattr(rep, "magnitude_plot_from_dict"):
-        write_atomic(run_dir / "plot.png", rep.magnitude_plot_from_dict(doc))
-    else:
-        _simple_plot(run_dir / "plot.png", np.asarray(dists, dtype=float))
-    if after is None or camera is None:
-        return
-    img = cv2.cvtColor(np.asarray(after, dtype=np.uint8), cv2.COLOR_GRAY2BGR)
-    for f in doc["fiducials"]:
-        b, a = f.get("before_mm"), f.get("after_mm")
-        if b is None or a is None:
-            continue
-        pb, pa = camera.project(np.array([b, a], dtype=float))
-        colour = (60, 200, 60) if f["label"] == "same_code" else (40, 40, 230)
-        # Vectors exaggerated 3x so mm-scale moves are visible on the whole field.
-        tip = pb + 3.0 * (pa - pb)
-        cv2.arrowedLine(
-            img,
-            (round(pb[0]), round(pb[1])),
-            (round(tip[0]), round(tip[1])),
-            colour,
-            2,
-            cv2.LINE_AA,
-            tipLength=0.25,
-        )
-    cv2.putText(
-        img,
-        "displacement vectors x3: green same-code, red cross-code",
-        (12, 28),
-        cv2.FONT_HERSHEY_SIMPLEX,
-        0.8,
-        (255, 255, 255),
-        2,
-        cv2.LINE_AA,
-    )
-    ok, buf = cv2.imencode(".png", img)
-    if ok:
-        write_atomic(run_dir / "overlay.png", buf.tobytes())
-
-
-def _simple_plot(path: Path, dists: Any) -> None:
-    """Bar chart of displacement magnitudes (sorted), drawn with OpenCV."""
-    import cv2
-    import numpy as np
-
-    from displacement_matcher.atomic import write_atomic
-
-    h, w, m = 360, 640, 40
-    img = np.full((h, w, 3), 255, np.uint8)
-    d = np.sort(np.asarray(dists, dtype=float))[::-1]
-    top = max(float(d.max()) if d.size else 1.0, 1.0)
-    n = max(d.size, 1)
-    for i, v in enumerate(d):
-        x0 = m + int(i * (w - 2 * m) / n)
-        x1 = m + int((i + 1) * (w - 2 * m) / n) - 1
-        y = h - m - int((h - 2 * m) * v / top)
-        cv2.rectangle(img, (x0, y), (max(x0, x1), h - m), (60, 160, 60), -1)
-    cv2.line(img, (m, h - m), (w - m, h - m), (0, 0, 0), 1)
-    cv2.line(img, (m, m), (m, h - m), (0, 0, 0), 1)
-    cv2.putText(img, f"{top:.1f} mm", (2, m - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
-    cv2.putText(
-        img, "fiducial displacement, sorted", (m, h - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0)
-    )
-    ok, buf = cv2.imencode(".png", img)
-    if ok:
-        write_atomic(path, buf.tobytes())
 
 
 def _print_table(runs: list[dict[str, Any]], truth: dict[str, Any] | None) -> None:
