@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import struct
 import zlib
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +51,31 @@ PNG_MARGIN = 0.5  # white margin on each side of the PNG target, in target diame
 #: Largest side of a single-target PNG (its supersampling lattice holds about 24 bytes per pixel
 #: of twice that side squared: 1.5 GB here; a 7.1 mm target at 4800 dpi is 2,700 px).
 MAX_PNG_SIDE_PX = 4000
+#: Most targets on one PDF sheet (about 1.8 kB and 0.15 ms each: 90 MB, 600 pages of 7.1 mm ones),
+#: a guard against a mistyped ``copies``.
+MAX_SHEET_TARGETS = 50_000
+TITLE_FONT_PT = 9.0
+PAGE_LINE_FONT_PT = 7.0
+FOOTER_FONT_PT = 6.0
+#: Advance widths of Helvetica (the PDF's font; Arial and Liberation Sans share them) for the
+#: printable ASCII characters 32..126 in WinAnsiEncoding, in 1/1000 em (Adobe's Helvetica AFM).
+HELVETICA_WIDTHS = (
+    # space ! " # $ % & ' ( ) * + , - . /
+    (278, 278, 355, 556, 556, 889, 667, 191, 333, 333, 389, 584, 278, 333, 278, 278)
+    # 0-9 : ; < = > ? @
+    + (556,) * 10
+    + (278, 278, 584, 584, 584, 556, 1015)
+    # A-Z
+    + (667, 667, 722, 722, 667, 611, 778, 722, 278, 500, 667, 556, 833)
+    + (722, 778, 667, 778, 722, 667, 611, 722, 667, 944, 667, 667, 611)
+    # [ \ ] ^ _ `
+    + (278, 278, 278, 469, 556, 333)
+    # a-z
+    + (556, 556, 500, 556, 556, 278, 556, 556, 222, 222, 500, 222, 833)
+    + (556, 556, 556, 556, 333, 500, 278, 556, 500, 722, 500, 500, 500)
+    # { | } ~
+    + (334, 260, 334, 584)
+)
 
 
 class PrintError(ValueError):
@@ -121,8 +147,17 @@ def min_feature(design: FiducialDesign) -> float:
     return min([*widths, sector])
 
 
-def parse_codes(spec: str) -> tuple[int, ...]:
-    """Parse a code list such as ``"0-63"`` or ``"3,5,10-12"`` into sorted unique codes.
+def parse_codes(spec: str, *, unique: bool = True) -> tuple[int, ...]:
+    """Parse a code list such as ``"0-63"`` or ``"3,5,10-12"`` into sorted codes.
+
+    Parameters
+    ----------
+    spec : str
+        Comma-separated codes and inclusive ranges ``lo-hi``.
+    unique : bool
+        True (default): each code once. False: a code appears as many times as the list names
+        it, also through overlapping ranges (``"1,1,2"`` and ``"0-2,1"`` both give code 1 twice),
+        for printing several targets of one code.
 
     Raises
     ------
@@ -130,7 +165,7 @@ def parse_codes(spec: str) -> tuple[int, ...]:
         If the list is malformed, a range is reversed, or a code is not in the codebook.
     """
     n = code_count()
-    codes: set[int] = set()
+    codes: list[int] = []
     items = [s.strip() for s in spec.split(",")]
     if not spec.strip() or any(not s for s in items):
         raise PrintError(f"empty item in code list {spec!r}; expected e.g. '0-63' or '3,5,10-12'")
@@ -147,8 +182,8 @@ def parse_codes(spec: str) -> tuple[int, ...]:
             raise PrintError(f"reversed code range {item!r} in {spec!r}")
         if lo < 0 or hi >= n:
             raise PrintError(f"code range {item!r} is outside the codebook (codes 0..{n - 1})")
-        codes.update(range(lo, hi + 1))
-    return tuple(sorted(codes))
+        codes.extend(range(lo, hi + 1))
+    return tuple(sorted(set(codes) if unique else codes))
 
 
 def format_codes(codes: Sequence[int]) -> str:
@@ -163,6 +198,65 @@ def format_codes(codes: Sequence[int]) -> str:
         out.append(str(ordered[i]) if i == j else f"{ordered[i]}-{ordered[j]}")
         i = j + 1
     return ",".join(out)
+
+
+def describe_codes(codes: Sequence[int], *, total: bool = True) -> str:
+    """Short description of the targets of a sheet, codes summarised as ranges.
+
+    ``[0, 1, 2, 5]`` -> ``"codes 0-2,5"``; every code twice -> ``"codes 0-2,5 x2 (8 targets)"``;
+    codes with different counts are grouped by count in order of their first code:
+    ``[1, 1, 2]`` -> ``"codes 1 x2; 2 x1 (3 targets)"``. ``total=False`` leaves out the
+    ``(N targets)``.
+    """
+    counts = Counter(codes)
+    if not counts:
+        return "no codes"
+    by_count: dict[int, list[int]] = {}
+    for code in sorted(counts):
+        by_count.setdefault(counts[code], []).append(code)
+    if len(by_count) == 1 and 1 in by_count:
+        return f"codes {format_codes(by_count[1])}"
+    text = "codes " + "; ".join(f"{format_codes(group)} x{m}" for m, group in by_count.items())
+    return text + (f" ({len(codes)} targets)" if total else "")
+
+
+def parse_copies(text: str) -> int:
+    """Parse a number of copies (a positive integer such as ``"150"``).
+
+    Raises
+    ------
+    PrintError
+        If ``text`` is not a positive integer.
+    """
+    try:
+        copies = int(text.strip())
+    except ValueError:
+        copies = 0
+    if copies < 1:
+        raise PrintError(f"copies must be a positive integer, got {text!r}")
+    return copies
+
+
+def repeat_codes(codes: Sequence[int], copies: int) -> tuple[int, ...]:
+    """Each code of ``codes`` ``copies`` times, copies of one entry next to each other.
+
+    ``repeat_codes([1, 1, 2], 3)`` gives code 1 six times, then code 2 three times.
+
+    Raises
+    ------
+    PrintError
+        If ``copies`` is not a positive integer, or the total is above
+        :data:`MAX_SHEET_TARGETS`.
+    """
+    if isinstance(copies, bool) or not isinstance(copies, int) or copies < 1:
+        raise PrintError(f"copies must be a positive integer, got {copies!r}")
+    total = len(codes) * copies
+    if total > MAX_SHEET_TARGETS:
+        raise PrintError(
+            f"{len(codes)} codes x {copies} copies = {total} targets; a sheet holds at most "
+            f"{MAX_SHEET_TARGETS}"
+        )
+    return tuple(code for code in codes for _ in range(copies))
 
 
 def _check_common(diameter_mm: float, dpi: float, design: FiducialDesign) -> None:
@@ -347,10 +441,70 @@ def _text(x: float, y: float, size: float, s: str) -> str:
     return f"BT /F1 {_num(size)} Tf {_num(x)} {_num(y)} Td {_pdf_text(s)} Tj ET"
 
 
-def _text_width(s: str, size: float) -> float:
-    # Helvetica's widest digits and lower-case letters are <= 0.667 em; 0.6 em is a safe average
-    # for labels of digits, spaces and short words.
-    return 0.6 * size * len(s)
+def text_width(s: str, size: float) -> float:
+    """Width in points of ``s`` set in Helvetica at ``size`` points (:data:`HELVETICA_WIDTHS`).
+
+    Raises
+    ------
+    PrintError
+        If ``s`` holds a character outside printable ASCII.
+    """
+    total = 0
+    for ch in s:
+        k = ord(ch) - 32
+        if not 0 <= k < len(HELVETICA_WIDTHS):
+            raise PrintError(f"label text must be printable ASCII, got {s!r}")
+        total += HELVETICA_WIDTHS[k]
+    return total * size / 1000.0
+
+
+def _fitted_text(x: float, y: float, size: float, s: str, max_width: float) -> str:
+    """:func:`_text`, the font shrunk if need be so that the line is at most ``max_width`` wide."""
+    width = text_width(s, size)
+    if width > max_width:
+        size = math.floor(size * max_width / width * 1e4) / 1e4  # _num keeps 4 decimals
+    return _text(x, y, size, s)
+
+
+def sheet_title(
+    design_name: str, diameter_mm: float, codes: Sequence[int], max_width: float
+) -> str:
+    """The title line of a sheet, shortened to fit ``max_width`` points at :data:`TITLE_FONT_PT`.
+
+    Parameters
+    ----------
+    design_name : str
+    diameter_mm : float
+    codes : sequence of int
+        The sheet's targets, one entry each (repeats included).
+    max_width : float
+        Printable width in points.
+
+    Returns
+    -------
+    str
+        The codes summarised as ranges (:func:`describe_codes`); if that line is too wide, the
+        list cut after as many items as fit, then ``", ... (N codes from LO to HI, M targets)"``
+        (each target's label names its code). Should even that not fit, the caller shrinks the
+        font (:func:`_fitted_text`).
+    """
+    prefix = f"armourcam fiducial targets - design {design_name} - outer diameter "
+    prefix += f"{_num(diameter_mm)} mm - "
+    desc = describe_codes(codes)
+    full = prefix + desc
+    if text_width(full, TITLE_FONT_PT) <= max_width:
+        return full
+    distinct = sorted(set(codes))
+    plural = "s" if len(distinct) != 1 else ""
+    summary = f"{len(distinct)} code{plural} from {distinct[0]} to {distinct[-1]}"
+    if len(codes) != len(distinct):
+        summary += f", {len(codes)} targets"
+    tail = f", ... ({summary})"
+    for cut in reversed([i for i, ch in enumerate(desc) if ch in ",;"]):
+        line = prefix + desc[:cut] + tail
+        if text_width(line, TITLE_FONT_PT) <= max_width:
+            return line
+    return prefix + f"codes ... ({summary})"
 
 
 @dataclass(frozen=True, slots=True)
@@ -408,7 +562,8 @@ def target_sheet_pdf(
     ----------
     design_name : {"dot", "ring"}
     codes : sequence of int
-        Codes to print, one target each, in the given order.
+        Codes to print, one target each, in the given order; a code given ``n`` times is printed
+        ``n`` times (see :func:`repeat_codes`). Each target's label names its code.
     diameter_mm : float
         Diameter of the outermost printed circle.
     dpi : float
@@ -423,8 +578,9 @@ def target_sheet_pdf(
     Raises
     ------
     PrintError
-        On an unknown design or code, no codes, a non-positive size or dpi, features thinner than
-        two printer dots, or targets too large for A4.
+        On an unknown design or code, no codes or more than :data:`MAX_SHEET_TARGETS`, a
+        non-positive size or dpi, features thinner than two printer dots, or targets too large for
+        A4.
     """
     try:
         design = get_design(design_name)
@@ -434,17 +590,24 @@ def target_sheet_pdf(
         raise PrintError(str(err)) from None
     if not codes:
         raise PrintError("no codes to print")
+    if len(codes) > MAX_SHEET_TARGETS:
+        raise PrintError(
+            f"{len(codes)} targets asked for; a sheet holds at most {MAX_SHEET_TARGETS}"
+        )
     _check_common(diameter_mm, dpi, design)
     detail = f"{design.name} {_num(diameter_mm)} mm"
     label_w_pt = max(
-        _text_width(str(max(codes)), CODE_FONT_PT), _text_width(detail, DETAIL_FONT_PT)
+        max(text_width(str(c), CODE_FONT_PT) for c in set(codes)),
+        text_width(detail, DETAIL_FONT_PT),
     )
     layout = sheet_layout(diameter_mm, label_w_pt / PT_PER_MM)
     pages = [codes[i : i + layout.per_page] for i in range(0, len(codes), layout.per_page)]
     thinnest = min_feature(design) * diameter_mm / 2.0
-    title = (
+    line_w_pt = (A4_MM[0] - 2.0 * PAGE_MARGIN_MM) * PT_PER_MM
+    title = sheet_title(design.name, diameter_mm, codes, line_w_pt)
+    full_title = (
         f"armourcam fiducial targets - design {design.name} - outer diameter "
-        f"{_num(diameter_mm)} mm - codes {format_codes(codes)}"
+        f"{_num(diameter_mm)} mm - {describe_codes(codes)}"
     )
     footer = (
         f"Print at 100 % (actual size, no fit to page). The bar is {_num(SCALE_BAR_MM)} mm long. "
@@ -459,13 +622,15 @@ def target_sheet_pdf(
     for page_no, page_codes in enumerate(pages, start=1):
         ops = ["0 g 0 G"]
         top = A4_MM[1] - PAGE_MARGIN_MM
-        ops.append(_text(PAGE_MARGIN_MM * PT_PER_MM, (top - 4.0) * PT_PER_MM, 9.0, title))
+        x_pt = PAGE_MARGIN_MM * PT_PER_MM
+        ops.append(_fitted_text(x_pt, (top - 4.0) * PT_PER_MM, TITLE_FONT_PT, title, line_w_pt))
         ops.append(
-            _text(
-                PAGE_MARGIN_MM * PT_PER_MM,
+            _fitted_text(
+                x_pt,
                 (top - 8.5) * PT_PER_MM,
-                7.0,
+                PAGE_LINE_FONT_PT,
                 f"page {page_no} of {len(pages)}; cut on the crop marks",
+                line_w_pt,
             )
         )
         grid_top = top - 12.0
@@ -492,9 +657,11 @@ def target_sheet_pdf(
             f"{_num(x0_pt)} {_num(bar_y - tick)} m {_num(x0_pt)} {_num(bar_y + tick)} l "
             f"{_num(x1_pt)} {_num(bar_y - tick)} m {_num(x1_pt)} {_num(bar_y + tick)} l S"
         )
-        ops.append(_text(x0_pt, PAGE_MARGIN_MM * PT_PER_MM - 3.0, 6.0, footer))
+        ops.append(
+            _fitted_text(x0_pt, PAGE_MARGIN_MM * PT_PER_MM - 3.0, FOOTER_FONT_PT, footer, line_w_pt)
+        )
         contents.append(("\n".join(ops) + "\n").encode("ascii"))
-    return _pdf_document(contents, w_pt, h_pt, title)
+    return _pdf_document(contents, w_pt, h_pt, full_title)
 
 
 def _pdf_document(contents: Sequence[bytes], w_pt: float, h_pt: float, title: str) -> bytes:
@@ -538,32 +705,48 @@ def _pdf_document(contents: Sequence[bytes], w_pt: float, h_pt: float, title: st
 
 
 def write_targets(
-    path: str | Path, design_name: str, codes: Sequence[int], diameter_mm: float, dpi: float
+    path: str | Path,
+    design_name: str,
+    codes: Sequence[int],
+    diameter_mm: float,
+    dpi: float,
+    *,
+    copies: int = 1,
 ) -> str:
     """Write a PDF sheet (``.pdf``) or a single-target PNG (``.png``); returns a summary line.
+
+    Each entry of ``codes`` is printed ``copies`` times (:func:`repeat_codes`), so a code listed
+    twice prints ``2 * copies`` targets. A PNG holds exactly one target: one code, one copy.
 
     Raises
     ------
     PrintError
-        On an unsupported extension, a PNG asked for other than exactly one code, or any error of
-        :func:`target_sheet_pdf` / :func:`target_image`. Nothing is written on error.
+        On an unsupported extension, a bad ``copies``, a PNG asked for other than exactly one
+        target, or any error of :func:`target_sheet_pdf` / :func:`target_image`. Nothing is
+        written on error.
     """
     out = Path(path)
     ext = out.suffix.lower()
+    targets = repeat_codes(codes, copies)
     if ext == ".pdf":
-        data = target_sheet_pdf(design_name, codes, diameter_mm, dpi)
+        data = target_sheet_pdf(design_name, targets, diameter_mm, dpi)
         n_pages = data.count(b"/Type /Page ")
         summary = (
-            f"wrote {out}: {len(codes)} {design_name} targets of {_num(diameter_mm)} mm "
+            f"wrote {out}: {len(targets)} {design_name} targets of {_num(diameter_mm)} mm "
             f"on {n_pages} page{'s' if n_pages != 1 else ''}"
         )
+        if len(set(targets)) != len(targets):
+            summary += f" ({describe_codes(targets, total=False)})"
     elif ext == ".png":
-        if len(codes) != 1:
-            raise PrintError(f"a PNG holds exactly one target; got {len(codes)} codes")
-        img = target_image(design_name, codes[0], diameter_mm, dpi)
+        if len(targets) != 1:
+            raise PrintError(
+                f"a PNG holds exactly one target; got {len(targets)} "
+                f"({describe_codes(targets, total=False)}); write a .pdf sheet for several"
+            )
+        img = target_image(design_name, targets[0], diameter_mm, dpi)
         data = encode_png(img, dpi)
         summary = (
-            f"wrote {out}: {design_name} target {codes[0]}, {_num(diameter_mm)} mm = "
+            f"wrote {out}: {design_name} target {targets[0]}, {_num(diameter_mm)} mm = "
             f"{diameter_mm / MM_PER_INCH * dpi:.1f} px at {_num(dpi)} dpi, "
             f"{img.shape[1]}x{img.shape[0]} px"
         )

@@ -13,14 +13,21 @@ from numpy.typing import NDArray
 
 from armourcam.cli import main
 from armourcam.printing import (
+    A4_MM,
+    MAX_SHEET_TARGETS,
+    PAGE_MARGIN_MM,
     PT_PER_MM,
     PrintError,
     black_regions,
+    describe_codes,
     encode_png,
     parse_codes,
+    repeat_codes,
     sheet_layout,
+    sheet_title,
     target_image,
     target_sheet_pdf,
+    text_width,
     write_targets,
 )
 from fiducial_detector.codebook import BITS, code_bits
@@ -236,6 +243,133 @@ def test_black_regions_cover_the_code_sectors() -> None:
             assert hit == bool(bits[k])
 
 
+_TEXT = re.compile(rb"BT /F1 (\S+) Tf (\S+) (\S+) Td \(((?:[^()\\]|\\.)*)\) Tj ET")
+
+
+def _texts(content: bytes) -> list[tuple[float, float, float, str]]:
+    """Text lines of a page as (font size, x, y, string), PDF escapes undone."""
+    return [
+        (float(m[1]), float(m[2]), float(m[3]), re.sub(r"\\(.)", r"\1", m[4].decode("ascii")))
+        for m in _TEXT.finditer(content)
+    ]
+
+
+def _labels(content: bytes) -> list[int]:
+    """The code labels beside the targets of a page, in drawing order."""
+    return [int(s) for size, _, _, s in _texts(content) if size == 7.0 and s.isdigit()]
+
+
+def test_text_width_uses_helvetica_metrics() -> None:
+    """Widths add Helvetica's advance widths: 'm' is 0.833 em, digits 0.556 em, 'i' 0.222 em."""
+    assert text_width("m", 1000.0) == pytest.approx(833.0)
+    assert text_width("0123456789", 10.0) == pytest.approx(55.6)
+    assert text_width("mi i", 9.0) == pytest.approx(9.0 * (0.833 + 0.222 + 0.278 + 0.222))
+    with pytest.raises(PrintError, match="printable ASCII"):
+        text_width("\u00b5m", 9.0)
+
+
+@pytest.mark.parametrize(
+    ("codes", "copies", "diameter"),
+    [
+        (list(range(0, 66, 2)), 1, 7.1),  # 33 isolated codes: no range shortens the list
+        ([*range(0, 66, 2), 1, 1], 7, 12.3456),  # mixed counts and a long diameter
+        (list(range(66)), 150, 7.1),
+    ],
+)
+def test_every_text_line_fits_the_printable_width(
+    codes: list[int], copies: int, diameter: float
+) -> None:
+    """Title, page line, labels and footer end inside the right margin for worst-case lists.
+
+    The old title listed every code: 33 isolated codes made it 676 pt wide on a 527 pt line.
+    """
+    targets = repeat_codes(codes, copies)
+    pdf = target_sheet_pdf("ring", targets, diameter, 600)
+    right_pt = (A4_MM[0] - PAGE_MARGIN_MM) * PT_PER_MM
+    pages = _pages(pdf)
+    for content in (pages[0], pages[-1]):
+        texts = _texts(content)
+        assert texts[0][3].startswith("armourcam fiducial targets - design ring")
+        for size, x, _, s in texts:
+            assert x + text_width(s, size) <= right_pt + 1e-6, s
+    # The title is shortened, not shrunk, and starts the list with as many codes as fit.
+    size, _, _, title = _texts(pages[0])[0]
+    assert size == 9.0
+    assert f"outer diameter {diameter:g} mm - codes 0" in title
+
+
+def test_sparse_title_is_cut_with_a_count_and_metadata_keeps_the_list() -> None:
+    """A list too long for the line ends '..., (33 codes from 0 to 64)'; /Title has all codes."""
+    codes = list(range(0, 66, 2))
+    pdf = target_sheet_pdf("dot", codes, 7.1, 600)
+    title = _texts(_pages(pdf)[0])[0][3]
+    assert title.startswith("armourcam fiducial targets - design dot - outer diameter 7.1 mm - ")
+    assert title.endswith(", ... (33 codes from 0 to 64)") and "codes 0,2,4,6," in title
+    full = ",".join(str(c) for c in codes)
+    assert f"- codes {full}) /Producer".encode() in pdf
+    # Lists that fit are left whole, as ranges.
+    short = [0, 3, 7, 12, 19, 25, 31, 40, 47, 55, 63]
+    assert sheet_title("ring", 7.1, short, 527.0).endswith("codes 0,3,7,12,19,25,31,40,47,55,63")
+    assert sheet_title("ring", 7.1, list(range(64)), 527.0).endswith("codes 0-63")
+    # A width too small for any list still names the count.
+    tiny = sheet_title("ring", 7.1, [5, 5], 50.0)
+    assert tiny.endswith("codes ... (1 code from 5 to 5, 2 targets)")
+
+
+@pytest.mark.parametrize(
+    ("codes", "text"),
+    [
+        ([0, 1, 2, 5], "codes 0-2,5"),
+        ([0, 0, 1, 1], "codes 0-1 x2 (4 targets)"),
+        ([1, 1, 2], "codes 1 x2; 2 x1 (3 targets)"),
+        ([7, 3, 3, 7, 9], "codes 3,7 x2; 9 x1 (5 targets)"),
+    ],
+)
+def test_describe_codes(codes: list[int], text: str) -> None:
+    """Codes as ranges, grouped by how many targets each has."""
+    assert describe_codes(codes) == text
+
+
+# --- copies -----------------------------------------------------------------------------------
+
+
+def test_parse_codes_can_keep_repeats() -> None:
+    """With ``unique=False`` a code counts once per listing, overlapping ranges included."""
+    assert parse_codes("1,1,2", unique=False) == (1, 1, 2)
+    assert parse_codes("2-3,0-2", unique=False) == (0, 1, 2, 2, 3)
+    assert parse_codes("1,1,2") == (1, 2)
+
+
+def test_repeat_codes() -> None:
+    """Each entry ``copies`` times, copies side by side; bad counts name the problem."""
+    assert repeat_codes([1, 1, 2], 3) == (1,) * 6 + (2,) * 3
+    assert repeat_codes([4, 9], 1) == (4, 9)
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(PrintError, match="copies must be a positive integer"):
+            repeat_codes([1], bad)  # type: ignore[arg-type]
+    with pytest.raises(PrintError, match=f"at most {MAX_SHEET_TARGETS}"):
+        repeat_codes(list(range(64)), 10**9)
+
+
+def test_copies_spill_over_pages_with_every_label_naming_its_code(tmp_path: Path) -> None:
+    """Four codes x 150 copies: 600 targets on ceil(600 / per page) full pages, 150 of each."""
+    path = tmp_path / "sheet.pdf"
+    summary = write_targets(path, "ring", [0, 1, 2, 3], 7.1, 600, copies=150)
+    pages = _pages(path.read_bytes())
+    per_page = [len(_labels(c)) for c in pages]
+    assert len(pages) == math.ceil(600 / per_page[0]) > 1
+    assert all(n == per_page[0] for n in per_page[:-1]) and sum(per_page) == 600
+    labels = [code for c in pages for code in _labels(c)]
+    assert labels == [0] * 150 + [1] * 150 + [2] * 150 + [3] * 150
+    n_regions = {c: len(black_regions(get_design("ring"), c)) for c in range(4)}
+    for k, content in enumerate(pages, start=1):
+        assert f"(page {k} of {len(pages)}; cut on the crop marks) Tj".encode() in content
+        assert rb"codes 0-3 x150 \(600 targets\)) Tj" in content
+        assert len(_filled_paths(content)) == sum(n_regions[c] for c in _labels(content))
+    assert summary.startswith(f"wrote {path}: 600 ring targets of 7.1 mm on {len(pages)} pages")
+    assert summary.endswith("(codes 0-3 x150)")
+
+
 # --- PNG --------------------------------------------------------------------------------------
 
 
@@ -385,6 +519,15 @@ def test_encode_png_rejects_colour() -> None:
         encode_png(np.zeros((4, 4, 3), np.uint8), 600)
 
 
+def test_cli_copies_and_repeated_codes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--codes 2,1,1 --copies 3`` prints code 1 six times, then code 2 three times."""
+    pdf = tmp_path / "sheet.pdf"
+    assert main(["targets", "--codes", "2,1,1", "--copies", "3", "-o", str(pdf)]) == 0
+    (page,) = _pages(pdf.read_bytes())
+    assert _labels(page) == [1] * 6 + [2] * 3
+    assert "9 ring targets" in capsys.readouterr().out
+
+
 def test_cli_writes_pdf_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``armourcam targets`` writes both outputs and reports them."""
     pdf = tmp_path / "sheet.pdf"
@@ -403,6 +546,16 @@ def test_cli_writes_pdf_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[st
     ("args", "match"),
     [
         (["--codes", "0-3", "-o", "t.png"], "exactly one target"),
+        (
+            ["--codes", "9", "--copies", "2", "-o", "t.png"],
+            r"exactly one target; got 2 \(codes 9 x2",
+        ),
+        (["--codes", "9,9", "-o", "t.png"], "exactly one target; got 2"),
+        (["--copies", "0", "-o", "t.pdf"], "copies must be a positive integer, got '0'"),
+        (["--copies", "-2", "-o", "t.pdf"], "copies must be a positive integer"),
+        (["--copies", "1.5", "-o", "t.pdf"], "copies must be a positive integer"),
+        (["--copies", "many", "-o", "t.pdf"], "copies must be a positive integer"),
+        (["--copies", "1000", "-o", "t.pdf"], "64000 targets; a sheet holds at most"),
         (["-o", "t.jpg"], "unsupported output"),
         (["--codes", "99", "-o", "t.pdf"], "outside the codebook"),
         (["--dpi", "0", "-o", "t.pdf"], "dpi must be a positive"),

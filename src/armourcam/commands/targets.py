@@ -7,7 +7,7 @@ from typing import Any
 
 from fiducial_detector.design import DESIGNS
 
-from ..printing import parse_codes, write_targets
+from ..printing import MAX_SHEET_TARGETS, parse_codes, parse_copies, write_targets
 
 
 def register(subparsers: Any) -> None:
@@ -16,8 +16,9 @@ def register(subparsers: Any) -> None:
         "targets",
         help="make printable fiducial targets (PDF sheet or single-target PNG)",
         description=(
-            "Write an A4 PDF sheet of vector targets with labels and crop marks (-o NAME.pdf), "
-            "or one target as a grayscale PNG at the given dpi (-o NAME.png, exactly one code)."
+            "Write an A4 PDF sheet of vector targets with labels and crop marks (-o NAME.pdf, "
+            "as many pages as needed), or one target as a grayscale PNG at the given dpi "
+            "(-o NAME.png: exactly one code, one copy)."
         ),
     )
     parser.add_argument(
@@ -28,7 +29,17 @@ def register(subparsers: Any) -> None:
         "more precise in depth than the paper's dot)",
     )
     parser.add_argument(
-        "--codes", default="0-63", help="codes to print, e.g. '0-63' or '3,5,10-12' (default 0-63)"
+        "--codes",
+        default="0-63",
+        help="codes to print, e.g. '0-63' or '3,5,10-12' (default 0-63); a code listed twice, "
+        "also through overlapping ranges, is printed twice ('1,1,2': two of code 1, one of 2)",
+    )
+    parser.add_argument(
+        "--copies",
+        default="1",
+        metavar="N",
+        help="print every listed code N times, copies of a code side by side in code order "
+        f"(default 1; at most {MAX_SHEET_TARGETS} targets in all); each label names its code",
     )
     parser.add_argument(
         "--diameter-mm",
@@ -40,13 +51,20 @@ def register(subparsers: Any) -> None:
         "--dpi", type=float, default=600.0, help="printer / PNG resolution (default 600)"
     )
     parser.add_argument(
-        "-o", "--output", required=True, help="output file: .pdf (sheet) or .png (one target)"
+        "-o",
+        "--output",
+        required=True,
+        help="output file: .pdf (sheet) or .png (one target: one code, --copies 1)",
     )
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Write the targets and print a one-line summary."""
-    codes = parse_codes(args.codes)
-    print(write_targets(args.output, args.design, codes, args.diameter_mm, args.dpi))
+    codes = parse_codes(args.codes, unique=False)
+    copies = parse_copies(args.copies)
+    summary = write_targets(
+        args.output, args.design, codes, args.diameter_mm, args.dpi, copies=copies
+    )
+    print(summary)
     return 0
