@@ -177,7 +177,9 @@ def main(argv: list[str] | None = None) -> int:
         for status in msg.status:
             values = {kv.key: kv.value for kv in status.values}
             if values.get("frame_ms_p95"):
-                node_times[status.name.removeprefix("armourcam: ")] = values
+                # "<fully qualified node name>: armourcam" -> the node's own name.
+                name = status.name.removesuffix(": armourcam").rsplit("/", 1)[-1]
+                node_times[name] = values
 
     sub = node.create_subscription(PoseArray, "/armourcam/pose_array", on_poses, qos)
     node.create_subscription(PointCloud2, "/armourcam/detections", on_detections, qos)

@@ -10,6 +10,12 @@ With the three ``*/node.py`` modules this is the only module importing rclpy. It
 - :class:`Replayer` (``armourcam replay``): publishes a bag's images, camera info and hall topics;
 - :func:`record_topics` (``armourcam record``): writes the graph's topics to an MCAP bag.
 
+Namespaces: the nodes' default topic names are relative (``camera/image_raw``), so
+``--ros-args -r __ns:=/cell2`` moves a whole graph (``/cell2/camera/image_raw``); only
+:data:`GLOBAL_TOPICS` such as ``/diagnostics`` stay absolute. A replay publishes a bag's names
+relative to its own namespace (:func:`replay_name`) and a recording resolves relative names in
+its own, so the same ``--ros-args`` move them along with the graph.
+
 QoS names used throughout: ``reliable`` (RELIABLE, VOLATILE, KEEP_LAST depth; replay, nothing
 lost while queues keep up) and ``sensor_data`` (BEST_EFFORT, VOLATILE, KEEP_LAST depth; a live
 camera, late frames are dropped rather than queued). Latched outputs are RELIABLE +
@@ -96,15 +102,17 @@ def publish_diagnostics(
 ) -> None:
     """Publish one ``diagnostic_msgs/DiagnosticArray`` with the node's status.
 
-    ``level`` is ``"ok"``, ``"warn"`` or ``"error"``; the status is named
-    ``armourcam: <node name>`` and stamped now.
+    ``level`` is ``"ok"``, ``"warn"`` or ``"error"``; the status is named ``<fully qualified
+    node name>: armourcam`` (diagnostic_updater's ``node: task``, e.g.
+    ``/cell2/fiducial_detector: armourcam``, so nodes of several cells stay apart) and stamped
+    now.
     """
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
     levels = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN}
     status = DiagnosticStatus(
         level=levels.get(level, DiagnosticStatus.ERROR),
-        name=f"armourcam: {node.get_name()}",
+        name=f"{node.get_fully_qualified_name()}: armourcam",
         message=message,
         hardware_id=hardware_id,
         values=[KeyValue(key=k, value=v) for k, v in values.items()],
@@ -216,6 +224,105 @@ class FrameTimes:
         out = {f"frame_ms_{k}": v for k, v in stats.items()}
         out["frame_ms_frames"] = str(len(self._ms))
         return out
+
+
+def merge_status(*parts: tuple[str, str]) -> tuple[str, str]:
+    """One ``(level, message)`` of several: the worst level, and the non-empty messages joined
+    by ``"; "``, the most severe first (in the given order among equals)."""
+    level = worst_level(*(lv for lv, _ in parts))
+    ranked = sorted(
+        (p for p in parts if p[1]), key=lambda p: _LEVEL_RANK[p[0]], reverse=True
+    )  # sorted() is stable: equals keep their order
+    return level, "; ".join(text for _, text in ranked)
+
+
+class InputAge:
+    """Age of a node's last input frame, for its diagnostics: a stalled camera shows.
+
+    Before the first frame there is no age and no warning: the node reports what it did before
+    (OK, or what it waits for), since a rig idle between wave runs, or whose camera is not
+    started yet, is not a fault. Once frames have come, none for longer than ``stale_after_s``
+    makes the status WARN, with a message saying so; WARN, not ERROR, because between wave runs
+    the camera may be stopped on purpose. The age itself is always in the values
+    (``last_input_age_s``, seconds on the node's monotonic clock, not the frames' stamps).
+
+    Parameters
+    ----------
+    what : str
+        The input, for the message (``"image"``, ``"detections"``, ``"pose frame"``).
+    stale_after_s : float
+        Seconds without input after which the status is WARN; 0 disables the warning.
+    clock : callable, optional
+        Monotonic seconds (tests pass their own).
+    """
+
+    def __init__(
+        self, what: str, stale_after_s: float, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        if not (stale_after_s >= 0 and math.isfinite(stale_after_s)):
+            raise GraphError(f"stale_after_s must be >= 0 s (0: off), got {stale_after_s}")
+        self.what = what
+        self.stale_after_s = float(stale_after_s)
+        self._clock = clock
+        self._last: float | None = None
+
+    def received(self) -> None:
+        """Note that an input frame arrived now."""
+        self._last = self._clock()
+
+    def age_s(self) -> float | None:
+        """Seconds since the last input frame (None before the first)."""
+        return None if self._last is None else self._clock() - self._last
+
+    def status(self) -> tuple[str, str]:
+        """``("warn", "no <what> for <age> s ...")`` while the input is stale, else
+        ``("ok", "")`` (also before the first frame)."""
+        age = self.age_s()
+        if age is None or self.stale_after_s <= 0 or age <= self.stale_after_s:
+            return "ok", ""
+        return (
+            "warn",
+            f"no {self.what} for {age:.1f} s (stale_after_s {self.stale_after_s:g}): input "
+            "stalled or stopped",
+        )
+
+    def values(self) -> dict[str, str]:
+        """``last_input_age_s``: seconds, one decimal (an empty string before the first)."""
+        age = self.age_s()
+        return {"last_input_age_s": "" if age is None else f"{age:.1f}"}
+
+
+class RecentStamps:
+    """The header stamps (with frame_id) of a node's last ``size`` input frames, to recognise a
+    frame delivered again: the transient-local history a restarted upstream node (or a second
+    publisher of the same frames) sends.
+
+    A zero stamp is never taken for a repeat (a source that does not stamp its frames).
+    """
+
+    def __init__(self, size: int = 256) -> None:
+        if size < 1:
+            raise GraphError(f"stamp memory must hold >= 1 frame, got {size}")
+        self._order: deque[tuple[int, int, str]] = deque()
+        self._keys: set[tuple[int, int, str]] = set()
+        self.size = size
+        #: Frames recognised as repeats so far.
+        self.repeats = 0
+
+    def repeated(self, header: Any) -> bool:
+        """Whether the frame of ``header`` (a ``std_msgs/Header``) was seen; if not, note it
+        (forgetting the oldest beyond ``size``)."""
+        key = (int(header.stamp.sec), int(header.stamp.nanosec), str(header.frame_id))
+        if key[0] == 0 and key[1] == 0:
+            return False
+        if key in self._keys:
+            self.repeats += 1
+            return True
+        self._keys.add(key)
+        self._order.append(key)
+        while len(self._order) > self.size:
+            self._keys.discard(self._order.popleft())
+        return False
 
 
 def latched_qos(depth: int = 1) -> QoSProfile:
@@ -431,10 +538,16 @@ def node_factories() -> dict[str, Callable[[], Node]]:
 def run_one_process(
     params_file: str | None = None, *, multithreaded: bool = True, ros_args: Sequence[str] = ()
 ) -> int:
-    """Run all three nodes in this process on one executor until Ctrl-C."""
-    argv = ["armourcam-graph", "--ros-args", *ros_args]
+    """Run all three nodes in this process on one executor until Ctrl-C.
+
+    ``ros_args`` (remaps such as ``__ns``, ``-p`` parameters) apply to every node; they come
+    after the params file, so a ``-p`` given there wins over the file, as in a node process
+    (:func:`node_command`).
+    """
+    argv = ["armourcam-graph", "--ros-args"]
     if params_file:
         argv += ["--params-file", str(params_file)]
+    argv += list(ros_args)
 
     def make_executor() -> SingleThreadedExecutor | MultiThreadedExecutor:
         return MultiThreadedExecutor(num_threads=3) if multithreaded else SingleThreadedExecutor()
@@ -576,7 +689,7 @@ def message_class(msgtype: str) -> Any:
 class ReplayStats:
     """What a replay published."""
 
-    published: dict[str, int]
+    published: dict[str, int]  # messages per topic, by full (resolved) name
     frames: int
     frames_confirmed: int
     seconds: float
@@ -610,7 +723,7 @@ class Replayer:
         qos: str = "reliable",
         depth: int = 100,
         confirm_topic: str | None = None,
-        downstream_topic: str | None = "/armourcam/poses",
+        downstream_topic: str | None = "armourcam/poses",
         confirm_timeout: float = 30.0,
     ) -> None:
         from std_msgs.msg import Header  # noqa: F401  (ensures std_msgs is importable early)
@@ -714,15 +827,17 @@ class Replayer:
     def wait_for_graph(self, topics: Sequence[str], timeout: float) -> list[str]:
         """Wait until every topic has a subscriber in the graph other than this replayer's own
         (e.g. the matcher on the pose topic: its frames are published by another node, so they
-        would be lost while it is still being discovered); returns the topics still waiting."""
-        own = dict.fromkeys(topics, 0)
+        would be lost while it is still being discovered); returns the topics still waiting.
+        Relative names resolve in the replay node's namespace."""
+        full = {t: self.node.resolve_topic_name(t) for t in topics}
+        own = dict.fromkeys(full.values(), 0)
         for sub in self.node.subscriptions:
             if sub.topic_name in own:
                 own[sub.topic_name] += 1
         deadline = time.monotonic() + timeout
         missing = list(topics)
         while missing and time.monotonic() < deadline:
-            missing = [t for t in missing if self.node.count_subscribers(t) <= own[t]]
+            missing = [t for t in missing if self.node.count_subscribers(full[t]) <= own[full[t]]]
             if missing:
                 time.sleep(0.05)
         return missing
@@ -754,6 +869,27 @@ def _stamp_now(node: Node, last: list[int]) -> Any:
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 
+#: Names that stay absolute whatever the namespace (ROS conventions: the diagnostics
+#: aggregator's input, the log, parameter events, the transform tree).
+GLOBAL_TOPICS = frozenset({"/diagnostics", "/rosout", "/parameter_events", "/tf", "/tf_static"})
+
+
+def replay_name(bag_topic: str, remap: Mapping[str, str]) -> str:
+    """The name a replay publishes bag topic ``bag_topic`` under (``""``: skipped).
+
+    A ``remap`` target is used as given (absolute, or relative to the replay node's namespace).
+    Otherwise the bag's name is made relative (``/camera/image_raw`` -> ``camera/image_raw``),
+    so it resolves in the replay node's namespace as the nodes' relative default names resolve
+    in theirs: ``armourcam replay BAG --ros-args -r __ns:=/cell2`` feeds a graph started with
+    ``__ns:=/cell2``, and without a namespace the bag's own names are published.
+    :data:`GLOBAL_TOPICS` stay absolute.
+    """
+    if bag_topic in remap:
+        return remap[bag_topic]
+    if bag_topic in GLOBAL_TOPICS:
+        return bag_topic
+    return bag_topic.lstrip("/")
+
 
 def replay_bag(
     bag: Path,
@@ -762,7 +898,7 @@ def replay_bag(
     qos: str = "reliable",
     rate: float | None = 1.0,
     as_fast_as_consumed: bool = False,
-    confirm_topic: str = "/armourcam/detections",
+    confirm_topic: str = "armourcam/detections",
     restamp: bool = True,
     wait_subscribers: float = 10.0,
     wait_for: Sequence[str] = (),
@@ -780,8 +916,9 @@ def replay_bag(
     bag : Path
         The bag; read with :mod:`armourcam.bagio`.
     remap : dict
-        Bag topic -> published topic. Topics not in it keep their name; a topic mapped to ``""``
-        is skipped.
+        Bag topic -> published topic. Topics not in it keep their name, relative to the replay
+        node's namespace (:func:`replay_name`; ``ros_args`` may set it); a topic mapped to
+        ``""`` is skipped.
     qos, rate, as_fast_as_consumed, confirm_topic
         See :class:`Replayer`. ``as_fast_as_consumed`` waits for the detector's output stamped like
         each image before the next message (reliable, lossless by construction).
@@ -825,10 +962,10 @@ def replay_bag(
             with bagio.open_bag(bag) as b:
                 if b.message_count == 0:
                     raise GraphError(f"{bag}: the bag holds no messages")
-                infos = [i for i in b.topics.values() if remap.get(i.topic, i.topic)]
-            topics = {remap.get(i.topic, i.topic): i.msgtype for i in infos}
+                infos = [i for i in b.topics.values() if replay_name(i.topic, remap)]
+            topics = {replay_name(i.topic, remap): i.msgtype for i in infos}
             # Recorded with a TRANSIENT_LOCAL offered QoS: republished latched (Replayer.qos).
-            latched = {remap.get(i.topic, i.topic) for i in infos if i.latched}
+            latched = {replay_name(i.topic, remap) for i in infos if i.latched}
             total = sum(i.count for i in infos)
             items = _plan(_bag_messages(bag), remap)
         # Create every publisher first and wait for the graph to match them, so that the first
@@ -867,8 +1004,9 @@ def replay_bag(
                     while len(restamped) > 16:
                         del restamped[next(iter(restamped))]
                 msg.header.stamp = new
-            replayer.publisher(topic, msgtype).publish(msg)
-            published[topic] = published.get(topic, 0) + 1
+            pub = replayer.publisher(topic, msgtype)
+            pub.publish(msg)
+            published[pub.topic_name] = published.get(pub.topic_name, 0) + 1  # resolved name
             if msgtype == "sensor_msgs/msg/CameraInfo":
                 last_info[:] = [(topic, msgtype, msg)]
             if msgtype.startswith("std_msgs/") and as_fast_as_consumed:
@@ -923,7 +1061,7 @@ def _plan(
     messages: Iterator[tuple[str, str, int, Any]], remap: dict[str, str]
 ) -> Iterator[tuple[str, str, int, Any]]:
     for topic, msgtype, t_ns, obj in messages:
-        target = remap.get(topic, topic)
+        target = replay_name(topic, remap)
         if target:
             yield target, msgtype, t_ns, obj
 
@@ -948,13 +1086,16 @@ def record_topics(
     before the recorder started is recorded too). Publishers that appear later with a stricter
     QoS are not matched, as with ``ros2 bag record``. The publishers' offered QoS profiles are
     stored in the bag's metadata, so a replay republishes latched topics latched. Messages are
-    stored as received (CDR bytes, not decoded). Returns message counts per topic.
+    stored as received (CDR bytes, not decoded). Relative names resolve in the recorder's
+    namespace (``ros_args`` such as ``-r __ns:=/cell2``); the bag stores full names. Returns
+    message counts per topic, by full name.
     """
     from armourcam import bagio
 
     use_dds_profile()
     rclpy.init(args=["armourcam-record", "--ros-args", *ros_args])
     node = rclpy.create_node("armourcam_record")
+    topics = list(dict.fromkeys(node.resolve_topic_name(t) for t in topics))
     counts: dict[str, int] = dict.fromkeys(topics, 0)
     lock = threading.Lock()
     stop = stop or threading.Event()

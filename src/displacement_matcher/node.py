@@ -4,17 +4,27 @@ A thin shell around :class:`displacement_matcher.session.Session` (the hall-auto
 machine: baseline on command or automatically, wait for the scene to settle after a run, fuse,
 match against the baseline and the previous run; paper sections 2.2, 3 steps 5-6 and 5). State
 is kept in ``data_dir`` (atomic writes) and a restarted node resumes from it and republishes the
-last run's latched outputs.
+last run's latched outputs, labelled with the frame_id of the frames it last took (kept in
+``data_dir`` too). A run settling longer than ``settle_timeout_s`` (a camera stopped right after
+the run) is measured on the frames it has, or reported as not measured, instead of waiting for
+frames for ever. A pose frame already taken (same header stamp and frame_id, among the last 256:
+the history a restarted pose estimator sends again) is ignored (``frames_duplicate``).
 
 Topics
 ------
+Default names are relative: they resolve in the node's namespace (``-r __ns:=/cell2``:
+``/cell2/armourcam/report``; without one ``/armourcam/report``). ``/diagnostics`` is absolute.
+The hall topics are relative too: each cell (flume, basin) under its own namespace gets its
+own wave-run feed; a hall-wide feed is set with ``-p run_active_topic:=/hall/run_active -p
+run_id_topic:=/hall/run_id``.
+
 Subscribed
-    ``poses_topic`` (default ``/armourcam/poses``), ``sensor_msgs/PointCloud2`` of
+    ``poses_topic`` (default ``armourcam/poses``), ``sensor_msgs/PointCloud2`` of
     ``FiducialPoseRecord`` rows, QoS per ``qos`` (``reliable`` / ``sensor_data``), KEEP_LAST
     ``queue_depth``.
-    ``run_active_topic`` (default ``/hall/run_active``), ``std_msgs/Bool``;
-    ``run_id_topic`` (default ``/hall/run_id``), ``std_msgs/String``;
-    ``capture_baseline_topic`` (default ``/armourcam/capture_baseline``), ``std_msgs/Empty``.
+    ``run_active_topic`` (default ``hall/run_active``), ``std_msgs/Bool``;
+    ``run_id_topic`` (default ``hall/run_id``), ``std_msgs/String``;
+    ``capture_baseline_topic`` (default ``armourcam/capture_baseline``), ``std_msgs/Empty``.
     Run state and id: each subscribed twice, RELIABLE + TRANSIENT_LOCAL, depth 10 (a restarted
     node is told the hall's latched state; of the messages published before the node started
     only the latest state is applied, so finished runs are not measured twice) and RELIABLE +
@@ -22,22 +32,24 @@ Subscribed
     message both deliver is applied once. The capture command: RELIABLE, VOLATILE (a restart
     never re-captures).
 Published (latched: RELIABLE + TRANSIENT_LOCAL, depth 1, so a late subscriber gets the last run)
-    ``markers_topic`` (default ``/armourcam/markers``), ``visualization_msgs/MarkerArray``:
+    ``markers_topic`` (default ``armourcam/markers``), ``visualization_msgs/MarkerArray``:
     arrows baseline -> current in **metres** (REP 103), green for same-code, red for cross-code
     matches, and a text label per unit (id and displacement in mm); namespace ``armourcam``,
     frame the camera's.
-    ``displacements_topic`` (default ``/armourcam/displacements``), ``sensor_msgs/PointCloud2``
+    ``displacements_topic`` (default ``armourcam/displacements``), ``sensor_msgs/PointCloud2``
     of ``DisplacementRecord`` rows (cumulative, mm).
-    ``report_topic`` (default ``/armourcam/report``), ``std_msgs/String``: the run report as
+    ``report_topic`` (default ``armourcam/report``), ``std_msgs/String``: the run report as
     JSON (the keys of ``armourcam compare --json`` plus ``run_id``, ``sequence``, ``settled``,
     ``frames_fused``, ``incremental``).
-    ``baseline_topic`` (default ``/armourcam/baseline``), ``sensor_msgs/PointCloud2`` of the
+    ``baseline_topic`` (default ``armourcam/baseline``), ``sensor_msgs/PointCloud2`` of the
     fused baseline's ``FiducialPoseRecord`` rows.
     ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray`` (reliable, volatile) every
     ``diagnostics_period_s`` and on every state change: phase, run, baseline, counts. ERROR
     while files could not be saved to ``data_dir`` (kept in memory, retried at every save) and
     for 30 s after a run's error, WARN before the baseline and for 30 s after a warning or a
-    dropped frame (:class:`armourcam.graph.RecentProblems`).
+    dropped frame (:class:`armourcam.graph.RecentProblems`), and WARN while no pose frame came
+    for more than ``stale_after_s`` after earlier ones (``last_input_age_s``,
+    :class:`armourcam.graph.InputAge`).
 
 Parameters: see :data:`PARAMS`.
 """
@@ -47,6 +59,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,11 +74,14 @@ from visualization_msgs.msg import Marker, MarkerArray
 from armourcam import records
 from armourcam.graph import (
     GraphError,
+    InputAge,
     Param,
     RecentProblems,
+    RecentStamps,
     declare_parameters,
     event_qos,
     latched_qos,
+    merge_status,
     publish_diagnostics,
     record_qos,
     run_node,
@@ -92,22 +108,24 @@ from .session import (
 from .units import load_unit_map
 
 PARAMS = (
-    Param("poses_topic", "/armourcam/poses", "Input: per-frame FiducialPoseRecord rows."),
-    Param("run_active_topic", "/hall/run_active", "Input: hall run state (std_msgs/Bool)."),
-    Param("run_id_topic", "/hall/run_id", "Input: hall run id (std_msgs/String)."),
+    Param("poses_topic", "armourcam/poses", "Input: per-frame FiducialPoseRecord rows."),
+    # Hall topics are relative like the rest: a cell in its own namespace (``__ns:=/cell2``)
+    # follows its own flume's runs; a hall-wide feed is named absolute (``/hall/run_active``).
+    Param("run_active_topic", "hall/run_active", "Input: hall run state (std_msgs/Bool)."),
+    Param("run_id_topic", "hall/run_id", "Input: hall run id (std_msgs/String)."),
     Param(
         "capture_baseline_topic",
-        "/armourcam/capture_baseline",
+        "armourcam/capture_baseline",
         "Input: capture-baseline command (std_msgs/Empty).",
     ),
-    Param("markers_topic", "/armourcam/markers", "Output (latched): MarkerArray, metres."),
+    Param("markers_topic", "armourcam/markers", "Output (latched): MarkerArray, metres."),
     Param(
         "displacements_topic",
-        "/armourcam/displacements",
+        "armourcam/displacements",
         "Output (latched): DisplacementRecord rows (PointCloud2), mm.",
     ),
-    Param("report_topic", "/armourcam/report", "Output (latched): run report JSON (String)."),
-    Param("baseline_topic", "/armourcam/baseline", "Output (latched): baseline pose rows."),
+    Param("report_topic", "armourcam/report", "Output (latched): run report JSON (String)."),
+    Param("baseline_topic", "armourcam/baseline", "Output (latched): baseline pose rows."),
     Param(
         "qos",
         "reliable",
@@ -140,6 +158,13 @@ PARAMS = (
         "Frames after a run after which the scene is taken as it is (report says settled=false).",
         minimum=1,
     ),
+    Param(
+        "settle_timeout_s",
+        120.0,
+        "Seconds after a run's stop after which it is measured on the frames it has, or reported "
+        "as not measured when none came (0: no time bound).",
+        minimum=0.0,
+    ),
     Param("auto_baseline", True, "Capture the baseline automatically before the first run."),
     Param("dn_mm", 20.5, "Nominal armour-unit size Dn, mm.", minimum=1e-3),
     Param(
@@ -159,8 +184,19 @@ PARAMS = (
         "",
         "Unit map YAML (unit id -> codes [, positions]); empty: automatic grouping.",
     ),
-    Param("frame_id", "", "frame_id of the outputs when no pose frame was seen (default: none)."),
+    Param(
+        "frame_id",
+        "",
+        "frame_id of the outputs when no pose frame was seen, now or by an earlier process on the "
+        "same data_dir (default: none).",
+    ),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics, s.", minimum=0.1),
+    Param(
+        "stale_after_s",
+        5.0,
+        "/diagnostics WARN when no pose frame came for this long after earlier ones, s (0: never).",
+        minimum=0.0,
+    ),
 )
 
 
@@ -184,6 +220,7 @@ class MatcherNodeConfig:
     settle_tolerance_mm: float
     settle_fraction: float
     settle_timeout_frames: int
+    settle_timeout_s: float
     auto_baseline: bool
     dn_mm: float
     displaced_dn: float
@@ -191,6 +228,7 @@ class MatcherNodeConfig:
     unit_map_file: str
     frame_id: str
     diagnostics_period_s: float
+    stale_after_s: float
 
     def session_config(self) -> SessionConfig:
         """The state machine's settings."""
@@ -200,6 +238,7 @@ class MatcherNodeConfig:
             settle_tolerance_mm=self.settle_tolerance_mm,
             settle_fraction=self.settle_fraction,
             settle_timeout_frames=self.settle_timeout_frames,
+            settle_timeout_s=self.settle_timeout_s,
             auto_baseline=self.auto_baseline,
             data_dir=Path(self.data_dir) if self.data_dir else None,
         )
@@ -259,7 +298,8 @@ class DisplacementMatcherNode(Node):
             self.session = Session(cfg.session_config(), compare=comparer)
         except (SessionError, MatcherError) as err:
             raise GraphError(f"displacement_matcher: {err}") from err
-        self._frame_id = cfg.frame_id
+        self.input_age = InputAge("pose frame", cfg.stale_after_s)
+        self.seen = RecentStamps()
         latched = latched_qos()
         self._pub_markers = self.create_publisher(MarkerArray, cfg.markers_topic, latched)
         self._pub_disp = self.create_publisher(PointCloud2, cfg.displacements_topic, latched)
@@ -286,6 +326,8 @@ class DisplacementMatcherNode(Node):
             Empty, cfg.capture_baseline_topic, self._on_capture, stream_qos("reliable", 10)
         )
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
+        # settle_timeout_s must end a settling run even when no frame comes.
+        self.create_timer(1.0, self._tick)
         self.problems = RecentProblems()
         s = self.session
         if s.baseline is not None:
@@ -301,6 +343,13 @@ class DisplacementMatcherNode(Node):
     # ------------------------------------------------------------------ callbacks
 
     def _on_poses(self, msg: PointCloud2) -> None:
+        if self.seen.repeated(msg.header):
+            self.get_logger().info(
+                f"pose frames already taken, ignored ({self.seen.repeats} so far)",
+                throttle_duration_sec=5.0,
+            )
+            return
+        self.input_age.received()
         try:
             poses = records.records_to_poses(records.from_pointcloud2(msg, records.POSE))
         except Exception as err:  # a malformed frame must not take the node down
@@ -309,9 +358,19 @@ class DisplacementMatcherNode(Node):
             self.problems.report("warn", text)
             self.get_logger().error(text)
             return
-        if msg.header.frame_id:
-            self._frame_id = msg.header.frame_id
-        self._handle(self.session.add_frame(poses, stamp_seconds(msg.header.stamp)))
+        self._handle(
+            self.session.add_frame(
+                poses,
+                stamp_seconds(msg.header.stamp),
+                frame_id=msg.header.frame_id,
+                now_s=time.monotonic(),
+            )
+        )
+
+    def _tick(self) -> None:
+        events = self.session.tick(time.monotonic())
+        if events:
+            self._handle(events)
 
     def _is_history(self, info: Any, key: str, value: Any) -> bool:
         """Keep the latest pre-start hall message instead of replaying the whole history."""
@@ -337,7 +396,9 @@ class DisplacementMatcherNode(Node):
             # node was down ends the run it resumed from data_dir (else that run would wait for
             # a stop already given, and the next run id would rename it).
             if active or self.session.phase == Phase.RUN_ACTIVE:
-                events += self.session.set_run_active(active, source_ns * 1e-9)
+                events += self.session.set_run_active(
+                    active, source_ns * 1e-9, now_s=time.monotonic()
+                )
         self._historic.clear()
         if events:
             self._handle(events)
@@ -358,7 +419,7 @@ class DisplacementMatcherNode(Node):
         self._apply_history()  # history first: it happened before this live event
         # The hall's own publication time orders the event against the frames' stamps.
         stamp = int(info["source_timestamp"]) * 1e-9
-        self._handle(self.session.set_run_active(bool(msg.data), stamp))
+        self._handle(self.session.set_run_active(bool(msg.data), stamp, now_s=time.monotonic()))
 
     def _on_run_id(self, msg: String, info: Any) -> None:
         if not self._first_delivery("run_id", info):
@@ -409,7 +470,7 @@ class DisplacementMatcherNode(Node):
             self._publish_diagnostics()
 
     def _header(self) -> Header:
-        h = Header(frame_id=self._frame_id)
+        h = Header(frame_id=self.session.frame_id or self.config.frame_id)
         h.stamp = self.get_clock().now().to_msg()
         return h
 
@@ -443,13 +504,19 @@ class DisplacementMatcherNode(Node):
             level, message = "error", f"{len(unsaved)} files not saved to {self.config.data_dir}"
         elif phase in (Phase.WAITING_BASELINE, Phase.CAPTURING_BASELINE):
             level = worst_level(level, "warn")
+        level, message = merge_status((level, message), self.input_age.status())
         publish_diagnostics(
             self,
             self._pub_diag,
             level=level,
             message=message or phase.value,
             hardware_id="armourcam",
-            values={**self.session.status(), **self.problems.values()},
+            values={
+                **self.session.status(),
+                "frames_duplicate": str(self.seen.repeats),
+                **self.input_age.values(),
+                **self.problems.values(),
+            },
         )
 
 

@@ -8,14 +8,20 @@ A monitoring session between wave runs, as a lab runs it:
 2. **Run.** The hall announces a run id (``/hall/run_id``) and the run state (``/hall/run_active``).
    While a run is active the scene moves and frames are ignored.
 3. **Settling.** When the run stops, frames are collected until ``settle_frames`` consecutive
-   frames agree within ``settle_tolerance_mm`` (or ``settle_timeout_frames`` pass; the report then
-   says ``"settled": false``); those frames are fused into the after-run pose set.
+   frames agree within ``settle_tolerance_mm`` (or ``settle_timeout_frames`` pass, or
+   ``settle_timeout_s`` seconds: the report then says ``"settled": false``); those frames are
+   fused into the after-run pose set. The time bound holds even when no frame comes at all (a
+   camera stopped right after the run): the caller passes the time (``now_s``, monotonic
+   seconds) with its inputs and calls :meth:`Session.tick` periodically, and the run is then
+   measured on what it has, or reported as not measured for lack of frames, instead of waiting
+   for ever.
 4. **Report.** The after-run set is matched against the baseline (cumulative displacement, paper
    sections 2.2 and 3 steps 5-6) and against the previous run's set (incremental); the report is
    tagged with the run id.
 
 Nothing is lost: the baseline, every run (its fused poses and its report) and the run in
-progress (its id and stamps, at every start, stop and completion: ``session.json``) are written
+progress (its id and stamps, at every start, stop and completion, and the frames' ``frame_id``
+when it changes: ``session.json``) are written
 atomically (temporary file + ``os.replace``) to ``data_dir``; a new :class:`Session` on the same
 directory resumes with them, and a run that was active or still settling when the matcher died is
 measured on the frames that come after the restart. A file that cannot be written (disk full)
@@ -31,6 +37,7 @@ from __future__ import annotations
 import enum
 import functools
 import json
+import math
 import os
 import re
 from collections import deque
@@ -89,6 +96,10 @@ class SessionConfig:
         Fraction of fiducials that must agree between consecutive frames (occlusions, glints).
     settle_timeout_frames : int
         After this many frames without settling, the last ``settle_frames`` are used anyway.
+    settle_timeout_s : float
+        After this many seconds of settling (by the ``now_s`` the caller passes: monotonic,
+        not the frames' stamps) the run is measured on the frames it has, or reported as not
+        measured when none came; 0 disables the bound.
     auto_baseline : bool
         Capture the baseline automatically before the first run.
     data_dir : Path or None
@@ -100,6 +111,7 @@ class SessionConfig:
     settle_tolerance_mm: float = 0.5
     settle_fraction: float = 0.9
     settle_timeout_frames: int = 50
+    settle_timeout_s: float = 120.0
     auto_baseline: bool = True
     data_dir: Path | None = None
 
@@ -117,6 +129,10 @@ class SessionConfig:
             raise SessionError(
                 f"settle_timeout_frames ({self.settle_timeout_frames}) must be >= "
                 f"settle_frames ({self.settle_frames})"
+            )
+        if not (self.settle_timeout_s >= 0 and math.isfinite(self.settle_timeout_s)):
+            raise SessionError(
+                f"settle_timeout_s must be >= 0 s (0: no time bound), got {self.settle_timeout_s}"
             )
 
 
@@ -314,9 +330,12 @@ class Session:
     """The matcher's hall-automation state machine.
 
     Feed it with :meth:`add_frame`, :meth:`set_run_active`, :meth:`set_run_id` and
-    :meth:`capture_baseline`; each returns the events it caused (new baseline, completed run,
-    notices). With a ``data_dir`` it resumes from what an earlier session wrote there; a file
-    that cannot be written is kept in memory (:attr:`unsaved_paths`) and retried at every save.
+    :meth:`capture_baseline`, and call :meth:`tick` periodically (the ``settle_timeout_s`` bound
+    when no frame comes); each returns the events it caused (new baseline, completed run,
+    notices). ``now_s`` arguments are the caller's monotonic clock, seconds (not the frames'
+    stamps, which may be a replay's or a lagging camera's); without them there is no time bound.
+    With a ``data_dir`` it resumes from what an earlier session wrote there; a file that cannot
+    be written is kept in memory (:attr:`unsaved_paths`) and retried at every save.
 
     Parameters
     ----------
@@ -360,6 +379,12 @@ class Session:
         # camera clock lagging the hall's).
         self._stale_frames = 0
         self._start_stamp: float | None = None
+        # When the settling began, on the caller's monotonic clock (None: not settling, or no
+        # time given yet; after a restart the bound starts at the first time given).
+        self._settle_started_s: float | None = None
+        #: frame_id of the frames (the camera's optical frame), kept in session.json so that a
+        #: restarted node labels its republished outputs with it.
+        self.frame_id = ""
         # Documents a disk error kept from data_dir, oldest first, and the notices of the saves
         # not yet returned to the caller (see _with_save_notices).
         self._unsaved: dict[Path, Any] = {}
@@ -428,7 +453,9 @@ class Session:
         return []
 
     @_with_save_notices
-    def set_run_active(self, active: bool, stamp_s: float | None = None) -> list[Event]:
+    def set_run_active(
+        self, active: bool, stamp_s: float | None = None, *, now_s: float | None = None
+    ) -> list[Event]:
         """The hall's run state changed (repeated identical states are harmless).
 
         ``stamp_s`` is when the change happened, on the clock of the frames' stamps. Frames
@@ -436,8 +463,9 @@ class Session:
         count for a pending baseline; frames stamped before a stop (the scene still moving) are
         not used for settling, unless ``settle_timeout_frames`` of them arrive in a row (a camera
         clock lagging the hall's): the run then settles on the frames in arrival order.
+        ``now_s`` (monotonic seconds) starts the ``settle_timeout_s`` bound at a stop.
         """
-        events: list[Event] = []
+        events: list[Event] = self._check_settle_timeout(now_s)
         if active == self._run_active:
             return events
         self._run_active = active
@@ -467,6 +495,7 @@ class Session:
             self._stale_frames = 0
             self._window.clear()
             self._settle_count = 0
+            self._settle_started_s = now_s
             self.phase = Phase.SETTLING
             self._save_state()
             events.append(Notice("info", f"run {self._current_run_id} stopped; settling"))
@@ -475,6 +504,7 @@ class Session:
     def _start_run(self, stamp_s: float | None) -> list[Event]:
         self._start_stamp = stamp_s
         self._stop_stamp = None
+        self._settle_started_s = None
         if self.baseline is None and (self._capture_requested or self.config.auto_baseline):
             # Take the baseline from the frames before the start, including any still
             # in flight; it is fused at the first frame stamped after the start.
@@ -493,14 +523,61 @@ class Session:
         return self._start_run(stamp)
 
     @_with_save_notices
-    def add_frame(self, poses: Sequence[FiducialPose], stamp_s: float = 0.0) -> list[Event]:
-        """One frame's pose set (possibly empty)."""
+    def add_frame(
+        self,
+        poses: Sequence[FiducialPose],
+        stamp_s: float = 0.0,
+        *,
+        frame_id: str | None = None,
+        now_s: float | None = None,
+    ) -> list[Event]:
+        """One frame's pose set (possibly empty).
+
+        ``frame_id`` is the frame's header frame_id (kept, and saved when it changes, so that a
+        restarted node labels its outputs with it; empty or None: unchanged); ``now_s`` the
+        caller's monotonic clock (a run settling longer than ``settle_timeout_s`` is measured
+        before this frame is taken).
+        """
+        timed_out = self._check_settle_timeout(now_s)
+        if frame_id and frame_id != self.frame_id:
+            self.frame_id = frame_id
+            self._save_state()
+        return timed_out + self._add_frame(poses, stamp_s)
+
+    @_with_save_notices
+    def tick(self, now_s: float) -> list[Event]:
+        """Time passed (``now_s``: the caller's monotonic clock, seconds).
+
+        A run that has been settling for ``settle_timeout_s`` is measured now on the frames it
+        has, or reported as not measured when none came (a camera stopped after the run): it
+        must not wait for frames for ever. Call it periodically (a node's timer).
+        """
+        return self._check_settle_timeout(now_s)
+
+    def _check_settle_timeout(self, now_s: float | None) -> list[Event]:
+        if now_s is None or self.phase != Phase.SETTLING:
+            return []
+        if self._settle_started_s is None:
+            # Settling since before the first time given (resumed after a restart): the
+            # bound starts now.
+            self._settle_started_s = now_s
+            return []
+        waited = now_s - self._settle_started_s
+        limit = self.config.settle_timeout_s
+        if limit <= 0 or waited < limit:
+            return []
+        events = self._finish_run(force=True, waited_s=waited)
+        if self._deferred_start is not None:
+            events += self._begin_deferred_run()  # the next run, started while this one settled
+        return events
+
+    def _add_frame(self, poses: Sequence[FiducialPose], stamp_s: float) -> list[Event]:
         nxt = self._deferred_start
         if nxt is not None and self.phase == Phase.SETTLING and stamp_s >= nxt:
             # The first frame of the next run: the last run is measured as it is.
             events = self._finish_run(force=True)
             events += self._begin_deferred_run()
-            return events + self.add_frame(poses, stamp_s)
+            return events + self._add_frame(poses, stamp_s)
         self.frames_seen += 1
         self.last_frame_fiducials = len(poses)
         start, stop = self._start_stamp, self._stop_stamp
@@ -662,8 +739,9 @@ class Session:
         note = f"baseline from {len(frames)} pre-run frames that arrived after the run started"
         return [BaselineCaptured(self.baseline), Notice("warn", note)]
 
-    def _finish_run(self, *, force: bool) -> list[Event]:
-        """Measure the run once the scene settled (or now, with ``force``)."""
+    def _finish_run(self, *, force: bool, waited_s: float | None = None) -> list[Event]:
+        """Measure the run once the scene settled (or now, with ``force``; ``waited_s``: the
+        seconds it settled when ``settle_timeout_s`` ended it)."""
         cfg = self.config
         settled = self._settled(cfg.settle_frames)
         if not (settled or force or self._settle_count >= cfg.settle_timeout_frames):
@@ -671,10 +749,34 @@ class Session:
         frames = self._last_frames(cfg.settle_frames)
         run_id = self._current_run_id or f"run-{self.runs_completed + 1:03d}"
         events: list[Event] = []
-        if not frames:
+        no_frame_error = "no frame after run"
+        if not frames and waited_s is not None:
+            stale = (
+                f"; {self._stale_frames} frames came, all stamped before the hall's stop"
+                if self._stale_frames
+                else " (is the camera running?)"
+            )
+            no_frame_error += f" within settle_timeout_s ({cfg.settle_timeout_s:g} s)"
+            events.append(
+                Notice(
+                    "error",
+                    f"run {run_id}: not measured: no frame in the {waited_s:.0f} s after the "
+                    f"run (settle_timeout_s {cfg.settle_timeout_s:g}){stale}",
+                )
+            )
+        elif not frames:
             events.append(Notice("error", f"run {run_id}: no frame after the run to measure"))
         after = tuple(self._fuse([f for f, _ in frames])) if frames else ()
-        if not settled:
+        if not settled and frames and waited_s is not None:
+            events.append(
+                Notice(
+                    "warn",
+                    f"run {run_id}: scene not settled within settle_timeout_s "
+                    f"({cfg.settle_timeout_s:g} s, {self._settle_count} frames): measured on the "
+                    f"last {len(frames)}",
+                )
+            )
+        elif not settled:
             events.append(
                 Notice("warn", f"run {run_id}: scene not settled after {self._settle_count} frames")
             )
@@ -685,7 +787,7 @@ class Session:
         rows: tuple[dict[str, Any], ...] = ()
         if not frames:
             # Never report "everything vanished" for a scene that was simply not seen.
-            report = {"fiducials": [], "units": [], "summary": {}, "error": "no frame after run"}
+            report = {"fiducials": [], "units": [], "summary": {}, "error": no_frame_error}
         elif self.baseline is None:
             report = {"fiducials": [], "units": [], "summary": {}, "error": "no baseline"}
             events.append(Notice("error", f"run {run_id}: no baseline to compare against"))
@@ -714,6 +816,7 @@ class Session:
         del self.runs[:-RUNS_IN_MEMORY]
         self._save_run(run)
         self._current_run_id = None
+        self._settle_started_s = None
         self._window.clear()
         self.phase = Phase.MONITORING if self.baseline is not None else Phase.WAITING_BASELINE
         if self._capture_requested:
@@ -812,10 +915,12 @@ class Session:
         self._save(Path(self.config.data_dir) / "runs" / name, doc)
 
     def _save_state(self) -> None:
-        """The run in progress (active or settling), so that a restarted matcher measures it.
+        """The run in progress (active or settling), so that a restarted matcher measures it,
+        and the frames' ``frame_id``, so that it labels its republished outputs with it.
 
-        Written atomically at every start, stop and completion; the settling frames themselves
-        are not kept (after a restart the run settles on the frames that come next).
+        Written atomically at every start, stop and completion and when the frame_id changes;
+        the settling frames themselves are not kept (after a restart the run settles on the
+        frames that come next).
         """
         if self.config.data_dir is None:
             return
@@ -830,12 +935,14 @@ class Session:
             "start_stamp_s": self._start_stamp if in_run else None,
             "stop_stamp_s": self._stop_stamp if in_run else None,
             "baseline_due": self._baseline_due if in_run else False,
+            "frame_id": self.frame_id,
         }
         self._save(Path(self.config.data_dir) / SESSION_STATE_FILE, doc)
 
     def _load_state(self, path: Path) -> None:
         doc = _read_json(path)
         try:
+            self.frame_id = str(doc.get("frame_id") or "")  # absent in files of older versions
             phase = doc["phase"]
             if phase is None:
                 return

@@ -7,27 +7,33 @@ image's (stamp and frame_id), so downstream nodes and bags can line outputs up w
 
 Topics
 ------
+Default names are relative: they resolve in the node's namespace (``-r __ns:=/cell2``:
+``/cell2/camera/image_raw``; without one ``/camera/image_raw``). ``/diagnostics`` is absolute.
+
 Subscribed
-    ``image_topic`` (default ``/camera/image_raw``), ``sensor_msgs/Image`` when
+    ``image_topic`` (default ``camera/image_raw``), ``sensor_msgs/Image`` when
     ``transport`` is ``raw`` (mono8, mono16, rgb8, bgr8, rgba8, bgra8, bayer_*8/16; ``step``
     honoured); ``<image_topic>/compressed``, ``sensor_msgs/CompressedImage`` (jpeg, png) when
     ``transport`` is ``compressed``. QoS per ``qos``: ``reliable`` (replay) or ``sensor_data``
     (live camera, best effort), KEEP_LAST ``queue_depth``.
 Published
-    ``detections_topic`` (default ``/armourcam/detections``), ``sensor_msgs/PointCloud2`` of
+    ``detections_topic`` (default ``armourcam/detections``), ``sensor_msgs/PointCloud2`` of
     ``FiducialDetectionRecord`` rows (fields generated from ``msg/``), QoS as the input
     (``reliable`` or ``sensor_data``), one message per decoded frame (an empty cloud when
     nothing is found).
     ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``, reliable, every
-    ``diagnostics_period_s``: frames received / published / dropped, the last problem; WARN
-    while a frame was dropped in the last 30 s (:class:`armourcam.graph.RecentProblems`).
+    ``diagnostics_period_s``: frames received / published / dropped, the last problem, the
+    age of the last image (``last_input_age_s``); WARN while a frame was dropped in the last
+    30 s (:class:`armourcam.graph.RecentProblems`) and while no image came for more than
+    ``stale_after_s`` after earlier ones (a stalled camera; before the first image: OK,
+    :class:`armourcam.graph.InputAge`).
 
 A frame that cannot be decoded (unknown encoding, wrong ``step``, zero size, corrupt JPEG...) or
 detected is logged with the reason and dropped; the node lives on.
 
 Parameters (all read-only unless noted): see :data:`PARAMS` (``image_topic``, ``transport``,
 ``detections_topic``, ``qos``, ``queue_depth``, ``design``, ``subpixel``, ``decimate``,
-``diagnostics_period_s``).
+``diagnostics_period_s``, ``stale_after_s``).
 """
 
 from __future__ import annotations
@@ -45,9 +51,11 @@ from armourcam import image_codec, records
 from armourcam.graph import (
     FrameTimes,
     GraphError,
+    InputAge,
     Param,
     RecentProblems,
     declare_parameters,
+    merge_status,
     publish_diagnostics,
     record_qos,
     run_node,
@@ -58,7 +66,7 @@ from .design import DESIGNS
 from .detect import DECIMATE_FACTORS, SUBPIXEL_METHODS, DesignChoice, SubpixelMethod
 
 PARAMS = (
-    Param("image_topic", "/camera/image_raw", "Camera image topic (raw images)."),
+    Param("image_topic", "camera/image_raw", "Camera image topic (raw images)."),
     Param(
         "transport",
         "raw",
@@ -68,7 +76,7 @@ PARAMS = (
     ),
     Param(
         "detections_topic",
-        "/armourcam/detections",
+        "armourcam/detections",
         "Output: sensor_msgs/PointCloud2 of FiducialDetectionRecord rows, header of the image.",
     ),
     Param(
@@ -100,6 +108,12 @@ PARAMS = (
         choices=DECIMATE_FACTORS,
     ),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics, s.", minimum=0.1),
+    Param(
+        "stale_after_s",
+        5.0,
+        "/diagnostics WARN when no image came for this long after earlier ones, s (0: never).",
+        minimum=0.0,
+    ),
 )
 
 
@@ -116,6 +130,7 @@ class DetectorNodeConfig:
     subpixel: str
     decimate: int
     diagnostics_period_s: float
+    stale_after_s: float
 
 
 class FiducialDetectorNode(Node):
@@ -148,6 +163,7 @@ class FiducialDetectorNode(Node):
         self.received = self.published = self.dropped = 0
         self.problems = RecentProblems()
         self.frame_times = FrameTimes()
+        self.input_age = InputAge("image", cfg.stale_after_s)
         self.get_logger().info(
             f"detecting on {self._sub.topic_name} ({msg_type.__name__}, {cfg.qos}) -> "
             f"{self._pub.topic_name}"
@@ -155,6 +171,7 @@ class FiducialDetectorNode(Node):
 
     def _on_image(self, msg: Any) -> None:
         self.received += 1
+        self.input_age.received()  # even an undecodable frame: the camera is alive
         t0 = time.perf_counter()
         try:
             image = image_codec.decode(msg)
@@ -185,16 +202,21 @@ class FiducialDetectorNode(Node):
         self.frame_times.add(1e3 * (time.perf_counter() - t0))
 
     def _publish_diagnostics(self) -> None:
+        # A stalled camera is a state (WARN while it lasts); drops are events, shown while recent.
+        level, message = merge_status(
+            self.input_age.status(), (self.problems.level(), self.problems.message())
+        )
         publish_diagnostics(
             self,
             self._diag,
-            level=self.problems.level(),
-            message=self.problems.message() or "ok",
+            level=level,
+            message=message or "ok",
             hardware_id=self.input_topic,
             values={
                 "frames_received": str(self.received),
                 "frames_published": str(self.published),
                 "frames_dropped": str(self.dropped),
+                **self.input_age.values(),
                 **self.problems.values(),
                 **self.frame_times.values(),
             },

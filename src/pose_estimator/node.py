@@ -10,26 +10,34 @@ detections, a few milliseconds sooner on the frame's critical path.
 
 Topics
 ------
+Default names are relative: they resolve in the node's namespace (``-r __ns:=/cell2``:
+``/cell2/armourcam/poses``; without one ``/armourcam/poses``). ``/diagnostics`` is absolute.
+
 Subscribed
-    ``detections_topic`` (default ``/armourcam/detections``), ``sensor_msgs/PointCloud2``
+    ``detections_topic`` (default ``armourcam/detections``), ``sensor_msgs/PointCloud2``
     (FiducialDetectionRecord rows), QoS per ``qos`` (``reliable`` / ``sensor_data``),
     KEEP_LAST ``queue_depth``.
-    ``camera_info_topic`` (default ``/camera/camera_info``), ``sensor_msgs/CameraInfo``, same
+    ``camera_info_topic`` (default ``camera/camera_info``), ``sensor_msgs/CameraInfo``, same
     QoS; not subscribed when ``calibration_file`` is set (camera_calibration YAML).
 Published
-    ``poses_topic`` (default ``/armourcam/poses``), ``sensor_msgs/PointCloud2`` of
+    ``poses_topic`` (default ``armourcam/poses``), ``sensor_msgs/PointCloud2`` of
     ``FiducialPoseRecord`` rows (mm, camera optical frame), QoS as the input.
-    ``pose_array_topic`` (default ``/armourcam/pose_array``), ``geometry_msgs/PoseArray``:
+    ``pose_array_topic`` (default ``armourcam/pose_array``), ``geometry_msgs/PoseArray``:
     the same poses for RViz/Foxglove in **metres** (REP 103), orientation = rotation taking
     +z to the fiducial's normal; QoS as the input.
-    ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``: frames, drops, camera state; WARN
-    while waiting for camera info or after a dropped frame, ERROR after a rejected camera info
-    (each problem for 30 s, :class:`armourcam.graph.RecentProblems`).
+    ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``: frames, drops, repeats, camera
+    state, age of the last detections (``last_input_age_s``); WARN while waiting for camera
+    info or after a dropped frame, ERROR after a rejected camera info (each problem for 30 s,
+    :class:`armourcam.graph.RecentProblems`), WARN while no detections came for more than
+    ``stale_after_s`` after earlier ones (a stalled camera, :class:`armourcam.graph.InputAge`).
 
 Detections that arrive before any camera info are held (at most ``pending_limit`` frames, oldest
 dropped with a warning) and processed as soon as the camera is known. A frame whose records are
 malformed, lies outside the camera's image (a camera info that is not this camera's), or whose
-pose estimation fails, is logged and dropped; the node lives on.
+pose estimation fails, is logged and dropped; the node lives on. A frame this process has
+already taken (same header stamp and frame_id, among the last 256: the detector's
+transient-local history delivered again, a second publisher of the same frames) is not
+processed again (``frames_duplicate``).
 
 Parameters: see :data:`PARAMS`.
 """
@@ -54,9 +62,12 @@ from armourcam import records
 from armourcam.graph import (
     FrameTimes,
     GraphError,
+    InputAge,
     Param,
     RecentProblems,
+    RecentStamps,
     declare_parameters,
+    merge_status,
     publish_diagnostics,
     record_qos,
     run_node,
@@ -68,15 +79,15 @@ from .camera import CameraModel
 from .errors import CalibrationError
 
 PARAMS = (
-    Param("detections_topic", "/armourcam/detections", "Input: detections (PointCloud2)."),
-    Param("camera_info_topic", "/camera/camera_info", "Input: sensor_msgs/CameraInfo."),
+    Param("detections_topic", "armourcam/detections", "Input: detections (PointCloud2)."),
+    Param("camera_info_topic", "camera/camera_info", "Input: sensor_msgs/CameraInfo."),
     Param(
         "calibration_file",
         "",
         "camera_calibration YAML; when set, camera_info_topic is not used.",
     ),
-    Param("poses_topic", "/armourcam/poses", "Output: FiducialPoseRecord rows (PointCloud2)."),
-    Param("pose_array_topic", "/armourcam/pose_array", "Output: geometry_msgs/PoseArray (m)."),
+    Param("poses_topic", "armourcam/poses", "Output: FiducialPoseRecord rows (PointCloud2)."),
+    Param("pose_array_topic", "armourcam/pose_array", "Output: geometry_msgs/PoseArray (m)."),
     Param(
         "qos",
         "reliable",
@@ -93,6 +104,12 @@ PARAMS = (
     ),
     Param("pending_limit", 100, "Frames held while waiting for camera info.", minimum=1),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics, s.", minimum=0.1),
+    Param(
+        "stale_after_s",
+        5.0,
+        "/diagnostics WARN when no detections came for this long after earlier ones, s (0: never).",
+        minimum=0.0,
+    ),
 )
 
 
@@ -110,6 +127,7 @@ class PoseNodeConfig:
     diameter_mm: float
     pending_limit: int
     diagnostics_period_s: float
+    stale_after_s: float
 
 
 def normal_quaternions(normals: np.ndarray) -> np.ndarray:
@@ -170,7 +188,11 @@ class PoseEstimatorNode(Node):
         self.received = self.published = self.dropped = 0
         self.problems = RecentProblems()
         self.frame_times = FrameTimes()
+        self.input_age = InputAge("detections", cfg.stale_after_s)
+        self.seen = RecentStamps()
+        # The camera info topic as resolved (namespace, remaps), also the diagnostics' hardware_id.
         source = cfg.calibration_file or self.resolve_topic_name(cfg.camera_info_topic)
+        self._camera_source = source
         self.get_logger().info(  # the names as remapped
             f"poses from {sub.topic_name} with camera from {source} -> {self._pub.topic_name}, "
             f"{self._pub_array.topic_name}"
@@ -210,6 +232,13 @@ class PoseEstimatorNode(Node):
 
     def _on_detections(self, msg: PointCloud2) -> None:
         self.received += 1
+        if self.seen.repeated(msg.header):
+            self.get_logger().info(
+                f"frames already processed, ignored ({self.seen.repeats} so far)",
+                throttle_duration_sec=5.0,
+            )
+            return
+        self.input_age.received()
         if self.camera is None:
             self._pending.append(msg)
             if len(self._pending) > self.config.pending_limit:
@@ -251,18 +280,21 @@ class PoseEstimatorNode(Node):
         if self.camera is None:
             level = worst_level(level, "warn")
             message = message or "waiting for camera info"
+        level, message = merge_status(self.input_age.status(), (level, message))
         publish_diagnostics(
             self,
             self._diag,
             level=level,
             message=message or "ok",
-            hardware_id=self.config.calibration_file or self.config.camera_info_topic,
+            hardware_id=self._camera_source,
             values={
                 "camera": cam,
                 "frames_received": str(self.received),
                 "frames_published": str(self.published),
                 "frames_dropped": str(self.dropped),
                 "frames_pending": str(len(self._pending)),
+                "frames_duplicate": str(self.seen.repeats),
+                **self.input_age.values(),
                 **self.problems.values(),
                 **self.frame_times.values(),
             },

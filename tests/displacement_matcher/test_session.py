@@ -421,6 +421,8 @@ def test_corrupt_data_dir_is_a_clear_error(tmp_path: Path) -> None:
         ({"settle_tolerance_mm": 0.0}, "settle_tolerance_mm"),
         ({"settle_fraction": 1.5}, "settle_fraction"),
         ({"settle_frames": 5, "settle_timeout_frames": 3}, "settle_timeout_frames"),
+        ({"settle_timeout_s": -1.0}, "settle_timeout_s"),
+        ({"settle_timeout_s": float("inf")}, "settle_timeout_s"),
     ],
 )
 def test_bad_config_is_rejected(kw: dict, match: str) -> None:
@@ -680,3 +682,135 @@ def test_capture_baseline_while_a_run_settles_measures_the_run_first(
     assert s.phase == Phase.CAPTURING_BASELINE
     (cap,) = of_type(feed(s, [frame(truth1, rng) for _ in range(2)], 3.0), BaselineCaptured)
     assert cap.baseline.reason == "command" and s.phase == Phase.MONITORING
+
+
+def test_a_run_whose_frames_stop_is_measured_after_settle_timeout_s(
+    rng: np.random.Generator,
+) -> None:
+    """The camera stops one frame after the run (not settled, below settle_timeout_frames):
+    the run used to wait for frames for ever. After ``settle_timeout_s`` (the caller's
+    monotonic clock, no sleeping) it is measured on the frame it has, with a warning."""
+    truth0 = scene(16)
+    truth1 = moved(truth0, [1], [6.0, 0, 0])
+    s = make(baseline_frames=2, settle_frames=3, settle_timeout_s=60.0)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    s.set_run_id("A")
+    s.set_run_active(True, 1.0, now_s=1000.0)
+    s.set_run_active(False, 2.0, now_s=1030.0)
+    assert not s.add_frame(frame(truth1, rng), 2.5, now_s=1031.0)
+    assert s.tick(1060.0) == [] and s.tick(1089.9) == []  # 59.9 s: still settling
+    assert s.phase == Phase.SETTLING
+    events = s.tick(1090.0)
+    (done,) = of_type(events, RunCompleted)
+    assert done.run.run_id == "A" and done.run.report["settled"] is False
+    assert done.run.report["frames_fused"] == 1
+    assert np.linalg.norm(disp_by_before(done.run.report, truth0)[4] - [6.0, 0, 0]) < 0.5
+    (warn,) = [e for e in of_type(events, Notice) if e.level == "warn"]
+    assert "not settled within settle_timeout_s (60 s, 1 frames): measured on the last 1" in (
+        warn.text
+    )
+    assert s.phase == Phase.MONITORING
+    assert s.tick(5000.0) == []  # nothing pending any more
+
+
+def test_a_run_without_any_frame_after_it_is_reported_as_not_measured(
+    rng: np.random.Generator,
+) -> None:
+    """No frame at all after the stop (the camera was switched off with the waves): after
+    ``settle_timeout_s`` the run is reported as not measured (an error, no displacements), and
+    a next run started meanwhile begins; a frame at the time of the timeout also ends it."""
+    truth0 = scene(16)
+    s = make(baseline_frames=2, settle_frames=2, settle_timeout_s=30.0)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    s.set_run_id("A")
+    s.set_run_active(True, 1.0, now_s=0.0)
+    s.set_run_active(False, 2.0, now_s=10.0)
+    # Frames stamped before the stop keep coming (in flight): not after-run frames.
+    assert not feed(s, [frame(truth0 + 30.0, rng) for _ in range(2)], 1.5)
+    s.set_run_id("B")
+    assert not of_type(s.set_run_active(True, 50.0, now_s=20.0), RunCompleted)  # deferred
+    events = s.tick(40.0)
+    (done,) = of_type(events, RunCompleted)
+    assert done.run.run_id == "A" and done.run.report["frames_fused"] == 0
+    assert done.run.report["settled"] is False
+    assert done.run.report["error"] == "no frame after run within settle_timeout_s (30 s)"
+    assert done.run.report["fiducials"] == [] and done.run.markers == ()
+    (err,) = [e for e in of_type(events, Notice) if e.level == "error"]
+    assert "run A: not measured: no frame in the 30 s after the run" in err.text
+    assert "2 frames came, all stamped before the hall's stop" in err.text
+    assert s.phase == Phase.RUN_ACTIVE and s.status()["current_run_id"] == "B"
+
+    # The next run: the first frame after the bound ends the settling before it is taken.
+    s.set_run_active(False, 60.0, now_s=100.0)
+    events = s.add_frame(frame(truth0, rng), 61.0, now_s=130.0)
+    (done_b,) = of_type(events, RunCompleted)
+    assert done_b.run.run_id == "B" and done_b.run.report["frames_fused"] == 0
+    assert s.phase == Phase.MONITORING
+
+
+def test_settle_timeout_s_zero_or_no_clock_waits_for_frames(rng: np.random.Generator) -> None:
+    """0 disables the bound; a caller that never passes the time (a bag analysed offline,
+    ended by end_of_input) has none either."""
+    truth0 = scene(16)
+    for s, now in (
+        (make(baseline_frames=2, settle_timeout_s=0.0), 0.0),
+        (make(baseline_frames=2), None),
+    ):
+        feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+        s.set_run_active(True, 1.0, now_s=now)
+        s.set_run_active(False, 2.0, now_s=now)
+        if now is not None:
+            assert s.tick(1e9) == []
+        assert s.phase == Phase.SETTLING
+
+
+def test_after_a_restart_the_settle_bound_starts_at_the_first_time_given(
+    tmp_path: Path, rng: np.random.Generator
+) -> None:
+    """The monotonic clock of a dead process means nothing to the next one: a run resumed
+    while settling gets the whole ``settle_timeout_s`` from the restart."""
+    truth0 = scene(16)
+    s = make(tmp_path, baseline_frames=2, settle_frames=2, settle_timeout_s=30.0)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    s.set_run_id("R")
+    s.set_run_active(True, 1.0, now_s=500.0)
+    s.set_run_active(False, 2.0, now_s=510.0)
+    del s
+    r = make(tmp_path, baseline_frames=2, settle_frames=2, settle_timeout_s=30.0)
+    assert r.phase == Phase.SETTLING
+    assert r.tick(7.0) == []  # the new process' clock: the bound starts here
+    assert r.tick(36.9) == []
+    (done,) = of_type(r.tick(37.0), RunCompleted)
+    assert done.run.run_id == "R" and done.run.report["frames_fused"] == 0
+
+
+def test_the_frames_frame_id_is_kept_in_the_data_dir(
+    tmp_path: Path, rng: np.random.Generator
+) -> None:
+    """A restarted matcher republishes its latched outputs: it must know their frame_id before
+    any new frame comes. It is saved (atomically, in session.json) when it changes, also
+    between runs, and read back; an empty frame_id does not replace it."""
+    truth0 = scene(16)
+    s = make(tmp_path, baseline_frames=2, settle_frames=2)
+    assert s.frame_id == ""
+    for k in range(2):
+        s.add_frame(frame(truth0, rng), 0.2 * k, frame_id="cam_optical")
+    s.add_frame(frame(truth0, rng), 0.5, frame_id="")
+    assert s.frame_id == "cam_optical"
+    state = tmp_path / "session.json"
+    assert json.loads(state.read_text())["frame_id"] == "cam_optical"
+    assert not list(tmp_path.rglob("*.tmp"))
+    assert make(tmp_path).frame_id == "cam_optical"  # between runs (no run in progress)
+
+    s.set_run_id("A")
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    s.add_frame(frame(truth0, rng), 2.5, frame_id="cam2_optical")
+    resumed = make(tmp_path, baseline_frames=2, settle_frames=2)
+    assert resumed.frame_id == "cam2_optical" and resumed.phase == Phase.SETTLING
+
+    # A session.json of an earlier version (no frame_id) still loads.
+    doc = json.loads(state.read_text())
+    del doc["frame_id"]
+    state.write_text(json.dumps(doc))
+    assert make(tmp_path).frame_id == ""

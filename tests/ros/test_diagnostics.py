@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.ros
 
 
 class _Node:
-    """The two methods of ``rclpy.node.Node`` the builder uses."""
+    """The methods of ``rclpy.node.Node`` the builder uses (a node in namespace ``/cell2``)."""
 
     def __init__(self) -> None:
         from rclpy.clock import Clock
@@ -20,6 +22,9 @@ class _Node:
 
     def get_name(self) -> str:
         return "pose_estimator"
+
+    def get_fully_qualified_name(self) -> str:
+        return "/cell2/pose_estimator"
 
     def get_clock(self) -> Any:
         return self._clock
@@ -49,7 +54,7 @@ def test_status_carries_level_name_and_values(level: str, code: int) -> None:
     assert status.level == {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN}.get(
         code, DiagnosticStatus.ERROR
     )
-    assert status.name == "armourcam: pose_estimator"
+    assert status.name == "/cell2/pose_estimator: armourcam"  # diagnostic_updater's node: task
     assert status.hardware_id == "/camera/camera_info" and status.message == "m"
     assert {kv.key: kv.value for kv in status.values} == values
     assert arr.header.stamp.sec > 0
@@ -119,3 +124,168 @@ def test_an_integer_for_a_float_parameter_is_taken_as_that_number(nodes: Any) ->
         assert nodes.alive("ints"), nodes.log("ints")
         time.sleep(0.1)
     assert "poses from" in nodes.log("ints") and nodes.alive("ints"), nodes.log("ints")
+
+
+def test_input_age_warns_only_after_input_came_and_stopped() -> None:
+    """Before the first frame: no age, no warning (an idle rig is not a fault). After it: the
+    age, and WARN with a message once none came for longer than ``stale_after_s``; 0 never
+    warns."""
+    from armourcam.graph import GraphError, InputAge, merge_status
+
+    now = [50.0]
+    age = InputAge("image", 5.0, clock=lambda: now[0])
+    assert age.status() == ("ok", "") and age.values() == {"last_input_age_s": ""}
+    now[0] += 100.0  # a rig idle for minutes before the first frame: still no warning
+    assert age.status() == ("ok", "")
+    age.received()
+    now[0] += 5.0
+    assert age.status() == ("ok", "") and age.values() == {"last_input_age_s": "5.0"}
+    now[0] += 7.5
+    level, text = age.status()
+    assert level == "warn"
+    assert text == "no image for 12.5 s (stale_after_s 5): input stalled or stopped"
+    assert age.values() == {"last_input_age_s": "12.5"}
+    age.received()  # the camera is back
+    assert age.status() == ("ok", "")
+    off = InputAge("image", 0.0, clock=lambda: now[0])
+    off.received()
+    now[0] += 1e6
+    assert off.status() == ("ok", "") and off.values()["last_input_age_s"] == "1000000.0"
+    with pytest.raises(GraphError, match="stale_after_s"):
+        InputAge("image", -1.0)
+    # Merged with a node's other state: the worst level, messages most severe first.
+    assert merge_status(("warn", "stale"), ("ok", "")) == ("warn", "stale")
+    assert merge_status(("warn", "stale"), ("error", "bad K")) == ("error", "bad K; stale")
+    assert merge_status(("warn", "a"), ("warn", "b")) == ("warn", "a; b")
+    assert merge_status(("ok", ""), ("ok", "")) == ("ok", "")
+
+
+def test_recent_stamps_recognise_a_frame_seen_again_within_their_memory() -> None:
+    from std_msgs.msg import Header
+
+    from armourcam.graph import GraphError, RecentStamps
+
+    def header(sec: int, nanosec: int = 0, frame_id: str = "cam") -> Header:
+        h = Header(frame_id=frame_id)
+        h.stamp.sec, h.stamp.nanosec = sec, nanosec
+        return h
+
+    seen = RecentStamps(size=3)
+    assert not any(seen.repeated(header(s)) for s in (1, 2, 3))
+    assert seen.repeated(header(2)) and seen.repeats == 1
+    assert not seen.repeated(header(2, 1))  # one nanosecond apart: another frame
+    assert not seen.repeated(header(2, frame_id="cam2"))  # another camera, same instant
+    # Memory of 3: the oldest frames are forgotten (bounded).
+    assert not seen.repeated(header(1))
+    # An unstamped source (zero stamps) is never taken for repeats.
+    assert not seen.repeated(header(0)) and not seen.repeated(header(0))
+    assert seen.repeats == 1
+    with pytest.raises(GraphError, match="stamp memory"):
+        RecentStamps(size=0)
+
+
+def _input_publisher(probe: Any, node: str) -> tuple[Any, Any]:
+    """A publisher of ``node``'s input in the probe and a function making one frame (now)."""
+    from sensor_msgs.msg import Image, PointCloud2, PointField
+    from std_msgs.msg import Header
+
+    from armourcam import image_codec, records
+    from armourcam.graph import record_qos, stream_qos
+
+    def header() -> Header:
+        h = Header(frame_id="cam")
+        h.stamp = probe.node.get_clock().now().to_msg()
+        return h
+
+    if node == "fiducial_detector":
+        pub = probe.node.create_publisher(Image, "/camera/image_raw", stream_qos("reliable", 10))
+
+        def image() -> Any:
+            msg = Image(**image_codec.image_to_msg_fields(np.full((120, 160), 128, np.uint8)))
+            msg.header = header()
+            return msg
+
+        return pub, image
+    topic, name, rows = {
+        "pose_estimator": (
+            "/armourcam/detections",
+            records.DETECTION,
+            records.detections_to_records([]),
+        ),
+        "displacement_matcher": ("/armourcam/poses", records.POSE, records.poses_to_records([])),
+    }[node]
+    pub = probe.node.create_publisher(PointCloud2, topic, record_qos("reliable", 10))
+    return pub, lambda: records.to_pointcloud2(PointCloud2, PointField, header(), name, rows)
+
+
+@pytest.mark.parametrize(
+    ("node", "what"),
+    [
+        ("fiducial_detector", "image"),
+        ("pose_estimator", "detections"),
+        ("displacement_matcher", "pose frame"),
+    ],
+)
+def test_a_stalled_input_turns_the_status_warn_until_frames_come_again(
+    nodes: Any, probe: Any, tmp_path: Path, node: str, what: str
+) -> None:
+    """A camera that stops used to leave every node OK. Each node reports the age of its last
+    input frame and is WARN, saying so, once none came for ``stale_after_s``; before the first
+    frame it reports what it did before (an idle rig is not a fault)."""
+    import yaml
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    from pose_estimator.camera import CameraModel
+
+    params: dict[str, Any] = {"stale_after_s": 1.5, "diagnostics_period_s": 0.2}
+    if node == "pose_estimator":
+        calibration = tmp_path / "camera.yaml"
+        calibration.write_text(yaml.safe_dump(CameraModel.ideal(640, 480, 500.0).to_dict()))
+        params["calibration_file"] = str(calibration)
+    if node == "displacement_matcher":
+        params |= {"data_dir": str(tmp_path / "data"), "baseline_frames": 2}
+    statuses: list[Any] = []
+    probe.node.create_subscription(
+        DiagnosticArray,
+        "/diagnostics",
+        lambda m: statuses.extend(s for s in m.status if node in s.name),
+        50,
+    )
+    pub, make_frame = _input_publisher(probe, node)
+    nodes.start(node, params=params)
+
+    def values() -> dict[str, str]:
+        return {kv.key: kv.value for kv in statuses[-1].values} if statuses else {}
+
+    def latest(pred: Any, timeout: float) -> bool:
+        return probe.spin_until(lambda: statuses and pred(statuses[-1], values()), timeout)
+
+    assert probe.spin_until(lambda: pub.get_subscription_count() > 0, 20.0), nodes.log(node)
+    probe.spin_for(2.0)  # longer than stale_after_s, but no frame yet: as before
+    assert latest(lambda s, v: "last_input_age_s" in v, 5.0), statuses[-1:]
+    assert values()["last_input_age_s"] == ""
+    assert "stalled" not in statuses[-1].message
+    if node != "displacement_matcher":  # the matcher is WARN before its baseline, as before
+        assert statuses[-1].level == DiagnosticStatus.OK, statuses[-1]
+
+    for _ in range(3):
+        pub.publish(make_frame())
+        probe.spin_for(0.1)
+    assert latest(
+        lambda s, v: (
+            v.get("last_input_age_s") not in ("", None)
+            and float(v["last_input_age_s"]) < 1.0
+            and s.level == DiagnosticStatus.OK
+        ),
+        10.0,
+    ), (statuses[-1:], nodes.log(node))
+
+    # The camera stops.
+    assert latest(lambda s, v: s.level == DiagnosticStatus.WARN, 5.0), statuses[-1:]
+    assert f"no {what} for " in statuses[-1].message
+    assert "stale_after_s 1.5" in statuses[-1].message
+    assert float(values()["last_input_age_s"]) >= 1.5  # one decimal: 1.54 s reads 1.5
+
+    pub.publish(make_frame())  # and starts again
+    assert latest(lambda s, v: s.level == DiagnosticStatus.OK, 5.0), statuses[-1:]
+    assert nodes.alive(node)

@@ -237,7 +237,7 @@ def test_a_data_dir_that_fails_mid_session_loses_nothing_and_the_node_lives_on(
     statuses: list[Any] = []
 
     def on_diag(msg: Any) -> None:
-        statuses.extend(s for s in msg.status if s.name == "armourcam: displacement_matcher")
+        statuses.extend(s for s in msg.status if s.name == "/displacement_matcher: armourcam")
 
     probe.node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
     late = Latched(probe)

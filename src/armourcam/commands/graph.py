@@ -9,6 +9,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from . import add_ros_args
+
 
 def register(subparsers: Any) -> None:
     """Add the ``graph`` subcommand."""
@@ -18,7 +20,10 @@ def register(subparsers: Any) -> None:
         description=(
             "Start fiducial_detector, pose_estimator and displacement_matcher, each as its own "
             "process (default) or all in one process, until Ctrl-C. Parameters come from a ROS "
-            "params YAML (see config/armourcam.params.yaml)."
+            "params YAML (see config/armourcam.params.yaml) and from --ros-args, which ends "
+            "the command's own options: everything after it goes to every node (e.g. "
+            "--ros-args -r __ns:=/cell2 -p diameter_mm:=10.0 moves the whole graph into /cell2, "
+            "its topics included, and sets a parameter)."
         ),
     )
     p.add_argument("--params", type=Path, help="ROS 2 parameters YAML (--ros-args --params-file)")
@@ -37,6 +42,9 @@ def register(subparsers: Any) -> None:
         type=Path,
         help="separate processes: write each node's output to DIR/<node>.log",
     )
+    add_ros_args(
+        p, "the rest of the command line goes to every node's rclpy (remaps, -p, --log-level)"
+    )
     p.set_defaults(func=run)
 
 
@@ -48,8 +56,10 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"params file {args.params} does not exist")
     params = str(args.params) if args.params else None
     if args.one_process:
-        return graph.run_one_process(params, multithreaded=not args.single_threaded)
-    procs = graph.launch_processes(params, log_dir=args.log_dir)
+        return graph.run_one_process(
+            params, multithreaded=not args.single_threaded, ros_args=args.ros_args
+        )
+    procs = graph.launch_processes(params, log_dir=args.log_dir, ros_args=args.ros_args)
     stopping = False
 
     def _stop(_sig: int, _frame: Any) -> None:

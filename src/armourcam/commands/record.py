@@ -8,25 +8,30 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from . import add_ros_args
+
+#: The graph's default names: relative (resolved in the recorder's namespace, as the nodes'
+#: are in theirs, so ``--ros-args -r __ns:=/cell2`` records ``/cell2/armourcam/poses``) but
+#: ``/diagnostics``, which every namespace shares.
 OUTPUT_TOPICS = (
-    "/armourcam/detections",
-    "/armourcam/poses",
-    "/armourcam/pose_array",
-    "/armourcam/markers",
-    "/armourcam/displacements",
-    "/armourcam/report",
-    "/armourcam/baseline",
+    "armourcam/detections",
+    "armourcam/poses",
+    "armourcam/pose_array",
+    "armourcam/markers",
+    "armourcam/displacements",
+    "armourcam/report",
+    "armourcam/baseline",
     "/diagnostics",
 )
 #: Recorded with ``--inputs``; those no publisher offers (say the raw or the compressed image) are
 #: left out of the bag.
 INPUT_TOPICS = (
-    "/camera/image_raw",
-    "/camera/image_raw/compressed",
-    "/camera/camera_info",
-    "/hall/run_active",
-    "/hall/run_id",
-    "/armourcam/capture_baseline",
+    "camera/image_raw",
+    "camera/image_raw/compressed",
+    "camera/camera_info",
+    "hall/run_active",
+    "hall/run_id",
+    "armourcam/capture_baseline",
 )
 
 
@@ -40,7 +45,10 @@ def register(subparsers: Any) -> None:
             "--duration. Types and QoS are discovered from the graph: each topic is subscribed "
             "to match its publishers (best effort for a live camera), whose QoS profiles are "
             "stored in the bag; latched topics are recorded with their last message even when "
-            "published before the recorder started. Topics without a publisher are not recorded."
+            "published before the recorder started. Topics without a publisher are not recorded. "
+            "Relative names (the defaults) resolve in the recorder's namespace, set with "
+            "--ros-args -r __ns:=/cell2; the bag stores full names. --ros-args ends the "
+            "command's own options: everything after it goes to rclpy."
         ),
     )
     p.add_argument("--out", type=Path, required=True, help="bag directory to create")
@@ -51,6 +59,7 @@ def register(subparsers: Any) -> None:
         help="also record the camera (raw and compressed images, camera info) and hall inputs",
     )
     p.add_argument("--duration", type=float, help="stop after this many seconds")
+    add_ros_args(p, "the rest of the command line goes to rclpy (e.g. -r __ns:=/cell2)")
     p.set_defaults(func=run)
 
 
@@ -65,7 +74,9 @@ def run(args: argparse.Namespace) -> int:
         topics += [t for t in INPUT_TOPICS if t not in topics]
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    counts = graph.record_topics(args.out, topics, duration=args.duration, stop=stop)
+    counts = graph.record_topics(
+        args.out, topics, duration=args.duration, stop=stop, ros_args=args.ros_args
+    )
     for topic, n in sorted(counts.items()):
         print(f"{topic}: {n}")
     return 0

@@ -7,8 +7,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from . import add_ros_args
+
 _SKIP_TYPES = ("sensor_msgs/msg/PointCloud2", "visualization_msgs/msg/MarkerArray")
-_SKIP_PREFIXES = ("/armourcam/report", "/diagnostics", "/rosout")
+_SKIP_PREFIXES = ("/diagnostics", "/rosout")
+#: The matcher's report, also as recorded from a graph in a namespace (``/cell2/armourcam/report``).
+_SKIP_SUFFIXES = ("/armourcam/report",)
 
 
 def register(subparsers: Any) -> None:
@@ -21,7 +25,11 @@ def register(subparsers: Any) -> None:
             "topics (std_msgs Bool/String/Empty) with rclpy. Headers are restamped with the "
             "publication time unless --keep-stamps, so frames and hall events share one clock. "
             "Recorded graph outputs (PointCloud2, MarkerArray, String reports) are not replayed "
-            "unless named with --topics."
+            "unless named with --topics. Topics are published relative to the replay's "
+            "namespace: with --ros-args -r __ns:=/cell2 the bag's /camera/image_raw is "
+            "published as /cell2/camera/image_raw, feeding a graph started in /cell2 (a "
+            "--remap target is taken as given). --ros-args ends the command's own options: "
+            "everything after it goes to rclpy."
         ),
     )
     p.add_argument("bag", type=Path, help="bag directory, .mcap file or ROS 1 .bag")
@@ -50,8 +58,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--topics", nargs="*", help="replay only these bag topics")
     p.add_argument(
         "--confirm-topic",
-        default="/armourcam/detections",
-        help="with --as-fast-as-consumed: the detector's output topic",
+        default="armourcam/detections",
+        help="with --as-fast-as-consumed: the detector's output topic (relative names resolve "
+        "in the replay's namespace)",
     )
     p.add_argument("--keep-stamps", action="store_true", help="keep the bag's header stamps")
     p.add_argument(
@@ -71,6 +80,7 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--linger", type=float, default=1.0, help="seconds to stay up after the last message"
     )
+    add_ros_args(p, "the rest of the command line goes to rclpy (e.g. -r __ns:=/cell2)")
     p.set_defaults(func=run)
 
 
@@ -95,7 +105,11 @@ def default_remaps(bag: Path, topics: list[str] | None) -> dict[str, str]:
             if topics is not None:
                 if name not in topics:
                     skip[name] = ""
-            elif info.msgtype in _SKIP_TYPES or name.startswith(_SKIP_PREFIXES):
+            elif (
+                info.msgtype in _SKIP_TYPES
+                or name.startswith(_SKIP_PREFIXES)
+                or name.endswith(_SKIP_SUFFIXES)
+            ):
                 skip[name] = ""
     return skip
 
@@ -125,6 +139,7 @@ def run(args: argparse.Namespace) -> int:
         wait_for=args.wait_for,
         settle_s=args.linger,
         progress=progress,
+        ros_args=args.ros_args,
     )
     for topic, n in sorted(stats.published.items()):
         print(f"{topic}: {n}")
