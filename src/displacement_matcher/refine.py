@@ -38,6 +38,7 @@ from .units import (
     UnitMap,
     UnitSpec,
     assign_units,
+    learn_pair_distances,
     mirror_normals,
     still_in_place,
     template_pose,
@@ -137,7 +138,23 @@ def match_units(
         # that fiducial however far it went (match's identity_codes).
         match_kw.setdefault("identity_codes", frozenset(c for u in unit_map.units for c in u.codes))
     result = match(baseline, current, **match_kw)
-    groups = assign_units(result, unit_map=unit_map, span_mm=span_mm, rigid_tol_mm=rigid_tol_mm)
+    span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
+    template = unit_map.template if unit_map is not None else None
+    explicit = unit_map is not None and bool(unit_map.units)
+    # Without template positions, the distances between a unit's codes are learned from the
+    # baseline, for the baseline's and the current state's grouping alike.
+    learned = (
+        learn_pair_distances(result.baseline, span)
+        if not explicit and not (template is not None and template.positions_mm)
+        else None
+    )
+    groups = assign_units(
+        result,
+        unit_map=unit_map,
+        span_mm=span_mm,
+        rigid_tol_mm=rigid_tol_mm,
+        pair_distances=learned or {},
+    )
     kw: dict[str, Any] = {
         "unit_map": unit_map,
         "span_mm": span_mm,
@@ -146,13 +163,10 @@ def match_units(
         "groups": groups,
         "centres": {},
     }
-    span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
-    template = unit_map.template if unit_map is not None else None
-    explicit = unit_map is not None and bool(unit_map.units)
     # The current state's own units: fiducials seen together now belong to one unit.
     cur_groups: list[list[int]] = []
     if not explicit:
-        cur_groups = units_of(current, span, template, rigid_tol_mm)
+        cur_groups = units_of(current, span, template, rigid_tol_mm, learned)
         kw["cur_groups"] = cur_groups
     # Faces still seen where they were (depth aside): baseline index -> current index.
     in_place = still_in_place(baseline, current)

@@ -51,6 +51,35 @@ def analyzed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, AnalysisRe
     return out, analyze_bag(BAG, out, session_config=cfg)
 
 
+def test_analyze_groups_the_session_bags_units_as_the_truth_does(
+    analyzed: tuple[Path, AnalysisResult],
+) -> None:
+    """No unit map: every one of the bag's 24 units carries codes 3, 17 and 29, 28.7-30.4 mm
+    apart, while another unit's fiducial is often 9-15 mm away. Grouping by the code distances
+    learned from the baseline keeps every reported unit to one true unit and finds about as many
+    units as there are (proximity alone reported 32, and most of them mixed two units)."""
+    truth = sessionbag.read_truth(BAG)
+    assert truth is not None
+    tmp_path, _ = analyzed
+    doc = json.loads((tmp_path / "report.json").read_text())
+    part = truth["runs"][0]["cumulative"]
+    tb = np.array([f["before_mm"] for f in part["fiducials"]])
+    owner = [f["unit"] for f in part["fiducials"]]
+    run = doc["runs"][0]
+    members: dict[str, set[int]] = {}
+    for f in run["fiducials"]:
+        if f.get("before_mm") is None or f.get("unit") is None:
+            continue
+        gap = np.linalg.norm(tb - np.asarray(f["before_mm"]), axis=1)
+        k = int(np.argmin(gap))
+        if gap[k] < 3.0:  # a fiducial measured where the truth has one
+            members.setdefault(f["unit"], set()).add(owner[k])
+    mixed = {u: m for u, m in members.items() if len(m) > 1}
+    assert not mixed, mixed
+    assert len(truth["runs"][0]["cumulative"]["units"]) == 24
+    assert 22 <= run["summary"]["units"] <= 26, run["summary"]["units"]
+
+
 def test_analyze_session_bag_reports_every_run(analyzed: tuple[Path, AnalysisResult]) -> None:
     truth = sessionbag.read_truth(BAG)
     assert truth is not None

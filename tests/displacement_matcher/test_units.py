@@ -11,6 +11,7 @@ from displacement_matcher.refine import match_units
 from displacement_matcher.rigid import kabsch, rigid_fit
 from displacement_matcher.units import (
     group_fiducials,
+    learn_pair_distances,
     load_unit_map,
     parse_unit_map,
     unit_motions,
@@ -112,6 +113,52 @@ def test_grouping_separates_interlocked_units() -> None:
     pure = sum(len(set(owners[g].tolist())) == 1 for g in groups)
     assert pure == len(groups)
     assert len(groups) <= len(set(owners.tolist())) + 3
+
+
+def test_automatic_grouping_learns_the_units_code_distances() -> None:
+    """Without a unit map, every unit carrying the same codes: the distances between a unit's
+    codes are the same on every unit, so they are learned from the state itself (to within a
+    few tenths of a millimetre of the template's), and grouping by them keeps most groups to
+    one true unit, where proximity alone joins neighbours' nearer fiducials (under half pure)."""
+    field = make_field(120, seed=5)
+    poses = field.before.poses(np.random.default_rng(2))
+    owners = field.before.unit[field.before.observable_ids]
+    template = dolos_geometry().unit_map(40.0).template
+    assert template is not None
+    learned = learn_pair_distances(poses, 40.0)
+    assert {(3, 17), (3, 29), (17, 29)} <= set(learned)
+    for (a, b), d in learned.items():
+        true = float(np.linalg.norm(template.positions_mm[a] - template.positions_mm[b]))
+        assert abs(d - true) < 0.5, (a, b, d, true)
+        assert learned[(b, a)] == d
+
+    def purity(groups: list[list[int]]) -> float:
+        return sum(len(set(owners[g].tolist())) == 1 for g in groups) / len(groups)
+
+    plain = group_fiducials(poses, span_mm=40.0)
+    grouped = group_fiducials(poses, span_mm=40.0, pair_distances=learned)
+    assert purity(plain) < 0.5
+    assert purity(grouped) > 0.8, purity(grouped)
+    # match_units learns them itself when no unit map is given.
+    an = match_units(poses, poses, gate_mm=50.0)
+    members = [list(u.baseline_indices) for u in an.units if u.baseline_indices]
+    assert purity(members) > 0.8
+
+
+def test_no_distance_is_learned_without_a_repeated_unit() -> None:
+    """Scattered fiducials (no unit repeats) show no spike among their distances: nothing is
+    learned, and grouping falls back to proximity."""
+    rng = np.random.default_rng(3)
+    poses = [
+        FiducialPose(
+            int(c),
+            np.array([*rng.uniform(-150, 150, 2), 800.0]),
+            np.array([0, 0, -1.0]),
+            np.eye(3) * 0.01,
+        )
+        for c in rng.choice([3, 17, 29], 120)
+    ]
+    assert learn_pair_distances(poses, 40.0) == {}
 
 
 def test_explicit_unit_map_and_unknown_codes(tmp_path: pytest.TempPathFactory) -> None:
