@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import stat
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -14,7 +15,7 @@ import yaml
 
 from armourcam.cli import main
 from armourcam.field import Field, make_field
-from armourcam.render import render
+from armourcam.render import Target, render
 from pose_estimator.camera import CameraModel
 
 DIAMETER_MM = 10.0
@@ -165,3 +166,122 @@ def test_fiducials_outside_the_unit_map_are_named(
     listed = line.split("(")[1].split(")")[0]
     assert line.endswith("they are in no unit") and listed
     assert {int(c) for c in listed.split(", ")} <= {int(c) for c in rest}
+
+
+def _render(cam: CameraModel, targets: list[Target], path: Path, seed: int) -> None:
+    img = render(cam, targets, blur_sigma=0.5, noise=0.01, rng=np.random.default_rng(seed))
+    cv2.imwrite(str(path), img.image)
+
+
+def test_before_images_from_a_moved_camera_are_refused_unless_allowed(
+    scene: tuple[Field, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A second BEFORE image after the camera moved 3.7 mm (every fiducial shifted alike): an
+    error naming it and how far it moved, nothing compared (exit 1, no report). Plain fusion
+    would have doubled the fiducials (the shift is beyond its association gate). With
+    --allow-camera-motion it is aligned onto the first, the warning is printed and carried in
+    the report, and the damage is the truth. Two images from one place give no warning."""
+    f, d = scene
+    cam = CameraModel.ideal(1200, 800, 2400.0)
+    shift = np.array([3.0, -2.0, 1.0])
+    moved = [replace(t, position_mm=t.position_mm + shift) for t in f.before.targets("ring")]
+    _render(cam, moved, tmp_path / "moved.png", 12)
+    _render(cam, f.before.targets("ring"), tmp_path / "again.png", 13)
+    before, moved_png = str(d / "before.png"), str(tmp_path / "moved.png")
+    common = [
+        "--after", str(d / "after.png"), "--camera", str(d / "camera.yaml"),
+        "--diameter-mm", str(DIAMETER_MM), "--units", str(d / "units.yaml"),
+        "--dn-mm", f"{f.geometry.dn_mm}", "--section-width-mm", f"{f.section_width_mm}",
+    ]  # fmt: skip
+    out = tmp_path / "refused"
+    assert main(["compare", before, moved_png, *common, "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == "" and not (out / "report.json").exists()
+    lines = captured.err.splitlines()
+    assert (
+        lines[0].startswith(f"armourcam compare: error: BEFORE image {moved_png} is moved 3.7")
+        and f"mm against {before}: all its fiducials shift alike" in lines[0]
+    )
+    assert "nothing compared" in lines[1] and "--allow-camera-motion" in lines[1]
+
+    out = tmp_path / "allowed"
+    args = ["compare", before, moved_png, *common, "--out", str(out), "--allow-camera-motion"]
+    assert main([*args, "--json"]) == 0
+    captured = capsys.readouterr()
+    doc = json.loads(captured.out)
+    assert doc == json.loads((out / "report.json").read_text())
+    moved_warning, aligned_warning = doc["warnings"]
+    assert moved_warning.startswith(f"BEFORE image {moved_png} is moved 3.7")
+    assert aligned_warning.startswith(f"BEFORE: aligned {moved_png} onto {before}")
+    assert captured.err.splitlines() == [
+        f"armourcam compare: warning: {moved_warning}",
+        f"armourcam compare: warning: {aligned_warning}",
+    ]
+    first, second = doc["fusion"]["before"]
+    assert (first["verdict"], second["verdict"], second["aligned"]) == ("agrees", "moved", True)
+    np.testing.assert_allclose(second["shift_mm"], -shift, atol=0.1)
+    assert doc["inputs"]["before_fiducials"] <= first["fiducials"] + 2
+    moved_mm = np.linalg.norm(f.after.centres_mm - f.before.centres_mm, axis=1)
+    truth = int(np.sum(f.overturned | (f.moved & (moved_mm >= f.geometry.dn_mm))))
+    assert doc["summary"]["displaced_units"] == truth
+
+    out = tmp_path / "still"
+    assert main(["compare", before, str(tmp_path / "again.png"), *common, "--out", str(out)]) == 0
+    assert capsys.readouterr().err == ""
+    doc = json.loads((out / "report.json").read_text())
+    assert doc["warnings"] == []
+    assert [r["verdict"] for r in doc["fusion"]["before"]] == ["agrees", "agrees"]
+
+
+def test_a_unit_map_with_codes_swapped_between_units_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every fiducial with its own code (``4 * unit + slot``) and an explicit unit map: a code
+    swapped between two distant units gives a warning for each, naming the unit and the code
+    and pointing at units.yaml, on stderr and in the report's ``warnings``; the right map gives
+    none."""
+    cam = CameraModel.ideal(1200, 800, 2400.0)
+    f = make_field(16, seed=3, camera=cam, moved_fraction=0.25, diameter_mm=DIAMETER_MM)
+    for k, state in enumerate((f.before, f.after)):
+        ids = state.visible_ids
+        targets = [
+            replace(t, code=4 * int(state.unit[i]) + f.geometry.codes.index(int(state.code[i])))
+            for t, i in zip(state.targets("ring"), ids, strict=True)
+        ]
+        _render(cam, targets, tmp_path / f"{k}.png", 20 + k)
+    (tmp_path / "camera.yaml").write_text(yaml.safe_dump(cam.to_dict()))
+    units = {f"D{u:02d}": [4 * u + k for k in range(4)] for u in range(16)}
+    # Two units far apart, each with three fiducials seen before: swap a seen code of each.
+    seen = {
+        u: [4 * u + f.geometry.codes.index(int(f.before.code[i]))
+            for i in f.before.observable_ids if f.before.unit[i] == u]
+        for u in range(16)
+    }  # fmt: skip
+    full = [u for u in range(16) if len(seen[u]) >= 3]
+    a, b = max(
+        ((a, b) for a in full for b in full if a < b),
+        key=lambda ab: float(
+            np.linalg.norm(f.before.centres_mm[ab[0]] - f.before.centres_mm[ab[1]])
+        ),
+    )
+    ca, cb = seen[a][0], seen[b][0]
+    good = tmp_path / "good.yaml"
+    good.write_text(yaml.safe_dump({"units": {k: {"codes": v} for k, v in units.items()}}))
+    units[f"D{a:02d}"][units[f"D{a:02d}"].index(ca)] = cb
+    units[f"D{b:02d}"][units[f"D{b:02d}"].index(cb)] = ca
+    swapped = tmp_path / "swapped.yaml"
+    swapped.write_text(yaml.safe_dump({"units": {k: {"codes": v} for k, v in units.items()}}))
+    args = ["compare", str(tmp_path / "0.png"), "--after", str(tmp_path / "1.png")]
+    args += ["--camera", str(tmp_path / "camera.yaml"), "--diameter-mm", str(DIAMETER_MM)]
+    args += ["--dn-mm", f"{f.geometry.dn_mm}"]
+    assert main([*args, "--units", str(good), "--out", str(tmp_path / "g")]) == 0
+    assert "units.yaml" not in capsys.readouterr().err
+    assert json.loads((tmp_path / "g" / "report.json").read_text())["warnings"] == []
+    assert main([*args, "--units", str(swapped), "--out", str(tmp_path / "s")]) == 0
+    err = [s for s in capsys.readouterr().err.splitlines() if s.endswith("check units.yaml")]
+    assert len(err) == 2
+    assert err[0].startswith(f"armourcam compare: warning: unit D{a:02d}: code {cb} is ")
+    assert err[1].startswith(f"armourcam compare: warning: unit D{b:02d}: code {ca} is ")
+    assert f"is it on unit D{b:02d}" in err[0] and f"is it on unit D{a:02d}" in err[1]
+    doc = json.loads((tmp_path / "s" / "report.json").read_text())
+    assert doc["warnings"] == [s.removeprefix("armourcam compare: warning: ") for s in err]

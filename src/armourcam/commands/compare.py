@@ -3,6 +3,16 @@
 Each state may be given as several images of the static scene; their poses are fused. Writes the
 report (``report.json``, ``fiducials.csv``, ``units.csv``, ``overlay.png``, ``plot.png``) into
 ``--out`` and prints the damage summary, or with ``--json`` the report itself.
+
+Images of one state that disagree are named on stderr (:func:`pose_estimator.fusion.fuse_frames`).
+When one was taken from another camera position (all its fiducials shifted alike by 0.5 mm or
+more) or shows another scene, nothing is compared and the exit status is 1: a moved camera would
+add its motion to every displacement. ``--allow-camera-motion`` then aligns the moved images onto
+the others (the largest set taken from one position), leaves out those of another scene and
+compares, with a warning. A unit of ``--units`` whose baseline fiducials cannot be on one unit (a
+code listed under the wrong unit) is named in a warning (:func:`displacement_matcher.compare.
+check_unit_map`). Warnings also go into the report's ``warnings`` list, and how each image agreed
+into its ``fusion`` entry.
 """
 
 from __future__ import annotations
@@ -11,10 +21,13 @@ import argparse
 import json
 import math
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..imageio import ImageReadError
 from .detect import add_decimate_option, read_for_camera
+
+if TYPE_CHECKING:
+    from pose_estimator.fusion import Fusion
 
 DEFAULT_DN_MM = 20.5  # a 38 mm dolos (Dn ~ 0.54 H)
 
@@ -69,6 +82,13 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--code-penalty-mm", type=float, default=None, help="cross-code penalty, mm")
     p.add_argument("--no-cross-code", action="store_true", help="forbid cross-code matches")
+    p.add_argument(
+        "--allow-camera-motion",
+        action="store_true",
+        help="images of one state taken from different camera positions are refused (exit 1); "
+        "with this flag the moved ones are aligned onto the others and images of another scene "
+        "left out",
+    )
     p.set_defaults(func=run)
 
 
@@ -89,7 +109,7 @@ def _readable(paths: list[str], camera: Any, failed: list[str]) -> tuple[list[st
 
 def run(args: argparse.Namespace) -> int:
     """Run the comparison, write the report, print the summary or the JSON."""
-    from displacement_matcher.compare import compare_poses, poses_from_images
+    from displacement_matcher.compare import compare_poses, state_from_images
     from displacement_matcher.damage import thresholds
     from displacement_matcher.report import report_dict, write_report
     from displacement_matcher.units import load_unit_map
@@ -118,8 +138,8 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 1
-    before, after = (
-        poses_from_images(
+    states = [
+        state_from_images(
             imgs,
             camera,
             args.diameter_mm,
@@ -127,9 +147,46 @@ def run(args: argparse.Namespace) -> int:
             subpixel=args.subpixel,
             image_fit=args.image_fit,
             decimate=args.decimate,
+            align=args.allow_camera_motion,
         )
         for imgs in (before_imgs, after_imgs)
-    )
+    ]
+    from pose_estimator.fusion import MOTION_VERDICTS
+
+    refused = not args.allow_camera_motion and any(state.camera_moved for state in states)
+    warnings: list[str] = []
+    for name, paths, state in zip(
+        ("BEFORE", "AFTER"), (before_paths, after_paths), states, strict=True
+    ):
+        for frame in state.disagreeing:
+            message = f"{name} image {frame.describe(paths)}"
+            level = "error" if refused and frame.verdict in MOTION_VERDICTS else "warning"
+            print(f"armourcam compare: {level}: {message}", file=sys.stderr)
+            warnings.append(message)
+        consensus = ", ".join(paths[i] for i in state.consensus)
+        done = []
+        if state.aligned:
+            done.append(f"aligned {', '.join(paths[i] for i in state.aligned)} onto {consensus}")
+        left = [paths[i] for i in range(len(paths)) if i not in state.fused]
+        if left:
+            done.append(f"left out {', '.join(left)}")
+        if done:
+            message = (
+                f"{name}: {' and '.join(done)} (--allow-camera-motion): its displacements are "
+                f"measured from the camera position of {consensus}"
+            )
+            print(f"armourcam compare: warning: {message}", file=sys.stderr)
+            warnings.append(message)
+    if refused:
+        print(
+            "armourcam compare: error: the images of one state were not all taken from one "
+            "camera position of one scene, and a moved camera adds its motion to every "
+            "displacement: nothing compared. Pass only images taken from one position, or "
+            "--allow-camera-motion to align them onto the largest such set",
+            file=sys.stderr,
+        )
+        return 1
+    before, after = (list(state.poses) for state in states)
     kw: dict[str, float] = {}
     if args.gate_mm is not None:
         kw["gate_mm"] = args.gate_mm
@@ -149,7 +206,12 @@ def run(args: argparse.Namespace) -> int:
             "diameter_mm": args.diameter_mm,
             "before_fiducials": len(before),
             "after_fiducials": len(after),
-        }
+        },
+        "fusion": {
+            "before": _agreement_rows(states[0], before_paths),
+            "after": _agreement_rows(states[1], after_paths),
+        },
+        "warnings": [*warnings, *cmp.warnings],
     }
     write_report(
         args.out,
@@ -157,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
         cmp.units,
         cmp.summary,
         camera=camera,
-        after_image=after_imgs[0],
+        after_image=after_imgs[states[1].consensus[0]],
         unassigned=cmp.unassigned,
         extra=extra,
     )
@@ -179,6 +241,8 @@ def run(args: argparse.Namespace) -> int:
     )
     for message in problems:
         print(f"armourcam compare: error: {message}", file=sys.stderr)
+    for message in cmp.warnings:
+        print(f"armourcam compare: warning: {message}", file=sys.stderr)
     if cmp.unassigned:
         codes = sorted({int(before[i].code) for i in cmp.unassigned})
         print(
@@ -187,6 +251,32 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return 1 if failed or problems else 0
+
+
+def _agreement_rows(state: Fusion, paths: list[str]) -> list[dict[str, Any]]:
+    """How each image of a state agreed with the others (``pose_estimator.fusion.Fusion``), as
+    the report's ``fusion`` rows (camera frame, mm)."""
+    rows = []
+    for a in state.frames:
+        rows.append(
+            {
+                "image": paths[a.frame],
+                "verdict": a.verdict,
+                "reference": [paths[i] for i in a.reference],
+                "fiducials": a.n_poses,
+                "shared": a.n_shared,
+                "motion_mm": round(a.motion_mm, 4),
+                "shift_mm": [round(float(x), 4) for x in a.shift_mm],
+                "rotation_deg": round(a.rotation_deg, 4),
+                "motion_chi2": round(a.motion_chi2, 2),
+                "motion_dof": a.motion_dof,
+                "chi2": round(a.chi2, 2),
+                "outliers": a.n_outliers,
+                "fused": a.frame in state.fused,
+                "aligned": a.frame in state.aligned,
+            }
+        )
+    return rows
 
 
 def _measured_nothing(
