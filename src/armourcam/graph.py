@@ -5,7 +5,8 @@ With the three ``*/node.py`` modules this is the only module importing rclpy. It
 - the QoS profiles (:func:`stream_qos`, :func:`latched_qos`) and the parameter declaration helper
   every node uses (:class:`Param`, :func:`declare_parameters`), and :func:`run_node`, the shared
   ``main()`` body (rclpy init, spin, clean shutdown on Ctrl-C or external shutdown);
-- launching: :func:`launch_processes` (each node its own process, own process group) and
+- launching: :func:`launch_processes` (each node its own process, own process group), watched
+  by :func:`supervise_processes` (a node's exit stops the graph, or it is respawned), and
   :func:`run_one_process` (all three nodes in one process on one executor);
 - :class:`Replayer` (``armourcam replay``): publishes a bag's images, camera info and hall topics;
 - :func:`record_topics` (``armourcam record``): writes the graph's topics to an MCAP bag.
@@ -396,26 +397,56 @@ def declare_parameters(node: Node, params: Sequence[Param]) -> dict[str, Any]:
             raise GraphError(f"{node.get_name()}: parameter {p.name}: {err}") from err
         if isinstance(p.default, float) and isinstance(value, int):
             value = float(value)
-        if not isinstance(value, type(p.default)):
-            raise GraphError(
-                f"{node.get_name()}: parameter {p.name} must be {type(p.default).__name__}, "
-                f"got {value!r}"
-            )
-        if isinstance(value, float) and not math.isfinite(value):
-            # NaN slips past every comparison below, infinity past the minimum.
-            raise GraphError(
-                f"{node.get_name()}: parameter {p.name} must be a finite number, got {value!r}"
-            )
-        if p.choices and value not in p.choices:
-            raise GraphError(
-                f"{node.get_name()}: parameter {p.name} must be one of {p.choices}, got {value!r}"
-            )
-        if p.minimum is not None and value < p.minimum:
-            raise GraphError(
-                f"{node.get_name()}: parameter {p.name} must be >= {p.minimum}, got {value!r}"
-            )
+        problem = parameter_problem(p, value)
+        if problem is not None:
+            raise GraphError(f"{node.get_name()}: parameter {p.name} {problem}")
         values[p.name] = value
+    _accept_int_for_float(node, params)
     return values
+
+
+def parameter_problem(p: Param, value: Any) -> str | None:
+    """What is wrong with ``value`` for parameter ``p``, or None: the same rules at start-up
+    (:func:`declare_parameters`) and for runtime changes (a node's on-set-parameters callback).
+
+    An int is a float parameter's number (:func:`_float_override`, :func:`_accept_int_for_float`
+    convert it before). Returns the message's tail: ``"must be >= 0.1, got 0.0"``.
+    """
+    if isinstance(p.default, float) and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, type(p.default)):
+        return f"must be {type(p.default).__name__}, got {value!r}"
+    if isinstance(value, float) and not math.isfinite(value):
+        # NaN slips past every comparison below, infinity past the minimum.
+        return f"must be a finite number, got {value!r}"
+    if p.choices and value not in p.choices:
+        return f"must be one of {p.choices}, got {value!r}"
+    if p.minimum is not None and value < p.minimum:
+        return f"must be >= {p.minimum}, got {value!r}"
+    return None
+
+
+def _accept_int_for_float(node: Node, params: Sequence[Param]) -> None:
+    """At runtime too, an integer set for a writable float parameter (a ``set_parameters``
+    service call with an INTEGER value: ``ros2 param set /pose_estimator diameter_mm 7``) is
+    taken as that float, as at start-up (:func:`_float_override`). rclpy checks the type
+    against the descriptor before any on-set callback runs, so the conversion is a pre-set
+    callback, rclpy's hook for rewriting the list first. rclpy concatenates the lists every
+    pre-set callback returns: a node must not add another one."""
+    names = frozenset(p.name for p in params if not p.read_only and isinstance(p.default, float))
+    if not names:
+        return
+    from rclpy.parameter import Parameter
+
+    def as_float(parameters: list[Parameter[Any]]) -> list[Parameter[Any]]:
+        return [
+            Parameter(q.name, Parameter.Type.DOUBLE, float(q.value))
+            if q.name in names and q.type_ == Parameter.Type.INTEGER
+            else q
+            for q in parameters
+        ]
+
+    node.add_pre_set_parameters_callback(as_float)
 
 
 def _float_override(node: Node, p: Param) -> None:
@@ -663,6 +694,131 @@ def stop_processes(procs: Any, timeout: float = 5.0) -> dict[int, int | None]:
         if p.poll() is None:
             p.wait(5.0)
     return {p.pid: p.returncode for p in procs}
+
+
+#: ``armourcam graph --respawn``: a node that had to be restarted this many times within
+#: :data:`RESPAWN_WINDOW_S` seconds (failing again at once) is given up on, and the graph stops.
+RESPAWN_LIMIT = 5
+RESPAWN_WINDOW_S = 60.0
+#: Exit status of a node whose parameters are invalid (:func:`_run_nodes`): not respawned.
+_STATUS_BAD_PARAMETERS = 2
+
+
+class RestartBudget:
+    """The restarts of one node: at most ``limit`` within any ``window_s`` seconds.
+
+    Times are the caller's monotonic clock, seconds.
+    """
+
+    def __init__(self, limit: int = RESPAWN_LIMIT, window_s: float = RESPAWN_WINDOW_S) -> None:
+        if limit < 0 or not (window_s > 0 and math.isfinite(window_s)):
+            raise GraphError(
+                f"restart limit must be >= 0 and window > 0 s, got {limit}, {window_s}"
+            )
+        self.limit = limit
+        self.window_s = window_s
+        self._times: deque[float] = deque()
+
+    def take(self, now_s: float) -> bool:
+        """Count a restart at ``now_s``; False, counting nothing, when ``limit`` restarts were
+        made in the ``window_s`` seconds before it."""
+        while self._times and self._times[0] <= now_s - self.window_s:
+            self._times.popleft()
+        if len(self._times) >= self.limit:
+            return False
+        self._times.append(now_s)
+        return True
+
+    def __len__(self) -> int:
+        """Restarts counted within the window, as of the last :meth:`take`."""
+        return len(self._times)
+
+
+def describe_exit(returncode: int) -> str:
+    """A process' exit for a log line: its status, or ``-9 (SIGKILL)`` when a signal ended it."""
+    if returncode >= 0:
+        return str(returncode)
+    try:
+        name = signal.Signals(-returncode).name
+    except ValueError:
+        name = f"signal {-returncode}"
+    return f"{returncode} ({name})"
+
+
+def _log_launcher(text: str) -> None:
+    print(f"armourcam graph: {text}", file=sys.stderr, flush=True)
+
+
+def supervise_processes(
+    procs: dict[str, subprocess.Popen[bytes]],
+    stopping: Callable[[], bool],
+    *,
+    respawn: Callable[[str], subprocess.Popen[bytes]] | None = None,
+    respawn_delay_s: float = 2.0,
+    respawn_limit: int = RESPAWN_LIMIT,
+    respawn_window_s: float = RESPAWN_WINDOW_S,
+    poll_s: float = 0.2,
+    log: Callable[[str], None] = _log_launcher,
+) -> int:
+    """Watch the nodes :func:`launch_processes` started until ``stopping()`` is true or a node's
+    exit ends the graph; returns 0 or, when a node ended it, 1.
+
+    Without ``respawn`` (ROS launch's default) a node exiting ends the graph; ``log`` names the
+    node and its exit status. With ``respawn`` (``respawn(name)`` starts node ``name`` again and
+    returns its process) a node that fails while the graph runs, with a non-zero status or
+    killed by a signal, is started again ``respawn_delay_s`` seconds later, and ``log`` says so
+    with its exit status. Not respawned, ending the graph as without ``respawn``: a node that
+    exited with status 0 (stopped on purpose: SIGINT and SIGTERM end a node cleanly), one whose
+    parameters are invalid (status 2: it would fail again), and one that needed more than
+    ``respawn_limit`` restarts within ``respawn_window_s`` seconds.
+
+    ``procs`` is kept current in place (a respawned node's new process replaces the old one, a
+    node waiting for its respawn is absent), so that the caller's :func:`stop_processes` after
+    this returns (or raises, e.g. ``KeyboardInterrupt``) stops every node still running. A
+    stopping graph (``stopping()`` true) respawns nothing.
+    """
+    budgets = {name: RestartBudget(respawn_limit, respawn_window_s) for name in procs}
+    due: dict[str, float] = {}  # node waiting for its respawn -> when, monotonic seconds
+    while not stopping():
+        now = time.monotonic()
+        ended = False
+        for name, proc in list(procs.items()):
+            code = proc.poll()
+            if code is None:
+                continue
+            del procs[name]
+            stop_processes([proc], timeout=0.0)  # whatever its process group still holds
+            exited = f"{name} exited with {describe_exit(code)}"
+            if respawn is None:
+                log(f"{exited}; stopping the graph")
+                ended = True
+            elif code == 0:
+                log(f"{exited} (stopped on purpose): not respawned; stopping the graph")
+                ended = True
+            elif code == _STATUS_BAD_PARAMETERS:
+                log(f"{exited} (invalid parameters): not respawned; stopping the graph")
+                ended = True
+            elif not budgets[name].take(now):
+                log(
+                    f"{exited}; it was respawned {respawn_limit} times within "
+                    f"{respawn_window_s:g} s: giving up, stopping the graph"
+                )
+                ended = True
+            else:
+                log(
+                    f"{exited}; respawning in {respawn_delay_s:g} s (restart {len(budgets[name])} "
+                    f"of at most {respawn_limit} within {respawn_window_s:g} s)"
+                )
+                due[name] = now + respawn_delay_s
+        if ended:
+            return 1
+        for name, at in list(due.items()):
+            if respawn is not None and now >= at and not stopping():
+                del due[name]
+                procs[name] = respawn(name)
+                log(f"{name} respawned (pid {procs[name].pid})")
+        time.sleep(poll_s)
+    return 0
 
 
 # ---------------------------------------------------------------------- message conversion
@@ -1069,65 +1225,143 @@ def _plan(
 # ---------------------------------------------------------------------- record
 
 
+#: Subscribed (``std_msgs/msg/Empty``, never published) by a recording once it is ready, after its
+#: own subscriptions: ``armourcam replay BAG --wait-for armourcam/recorder_ready`` publishes only
+#: once it has discovered it, and so the recorder's subscriptions (see :func:`record_topics`).
+#: Relative: in the recorder's namespace, as the replay's ``--wait-for`` names are in its own.
+RECORDER_READY_TOPIC = "armourcam/recorder_ready"
+
+
+@dataclass(frozen=True, slots=True)
+class RecordReady:
+    """What :func:`record_topics` reports when it is ready (full topic names)."""
+
+    #: Topics subscribed: of known type (at once) or with a publisher discovered.
+    subscribed: tuple[str, ...]
+    #: Topics of unknown type without a publisher yet: subscribed once one is discovered.
+    awaiting: tuple[str, ...]
+    #: Subscribed topics with a discovered publisher still unmatched when the wait ended.
+    unmatched: tuple[str, ...]
+
+
 def record_topics(
     out: Path,
     topics: Sequence[str],
     *,
+    types: Mapping[str, str] | None = None,
     duration: float | None = None,
     stop: threading.Event | None = None,
+    ready: Callable[[RecordReady], None] | None = None,
+    discovery_s: float = 1.0,
+    ready_timeout_s: float = 10.0,
     ros_args: Sequence[str] = (),
 ) -> dict[str, int]:
-    """Record ``topics`` (types discovered from the graph) into an MCAP bag until stopped.
+    """Record ``topics`` into an MCAP bag until stopped (the body of ``armourcam record``).
 
-    A topic is subscribed once a publisher of it is discovered (a topic that only has
-    subscribers, or never appears, is not recorded), with a QoS that matches every publisher
-    discovered then (:func:`_recording_qos`: best effort if any is, so a live camera at
-    ``sensor_data`` is recorded; transient-local if all are, so a latched message published
-    before the recorder started is recorded too). Publishers that appear later with a stricter
-    QoS are not matched, as with ``ros2 bag record``. The publishers' offered QoS profiles are
-    stored in the bag's metadata, so a replay republishes latched topics latched. Messages are
-    stored as received (CDR bytes, not decoded). Relative names resolve in the recorder's
-    namespace (``ros_args`` such as ``-r __ns:=/cell2``); the bag stores full names. Returns
-    message counts per topic, by full name.
+    Parameters
+    ----------
+    out : Path
+        The bag directory to create.
+    topics : sequence of str
+        Topics to record. Relative names resolve in the recorder's namespace (``ros_args``
+        such as ``-r __ns:=/cell2``); the bag stores full names.
+    types : mapping, optional
+        Known message types (``sensor_msgs/msg/Image``) by topic name, resolved as ``topics``
+        are: those topics are subscribed at once, before any publisher exists. The others are
+        subscribed once a publisher is discovered, with its type.
+    duration : float, optional
+        Seconds to record (default: until ``stop``, Ctrl-C or an external shutdown).
+    stop : threading.Event, optional
+        Set to end the recording.
+    ready : callable, optional
+        Called once with a :class:`RecordReady` when the recorder is ready (see Notes).
+    discovery_s, ready_timeout_s : float
+        Readiness comes no sooner than ``discovery_s`` seconds after the start (the graph's
+        publishers are discovered meanwhile) and no later than ``ready_timeout_s``.
+    ros_args : sequence of str
+        Arguments for rclpy (remaps, ``__ns``, ``--log-level``).
+
+    Returns
+    -------
+    dict
+        Messages recorded per topic, by full name.
+
+    Notes
+    -----
+    Subscriptions: a topic of known type is subscribed up front with the QoS the graph's and a
+    replay's publishers of that type offer (:func:`_expected_offers`: transient-local for the
+    record streams, the matcher's outputs and the hall topics, reliable and volatile
+    otherwise). Each publisher discovered later gets a subscription mirroring its offered QoS
+    unless one has it (:func:`_recording_qos` of its profile: best effort for a live camera at
+    ``sensor_data``, transient-local for a latched publisher), so it is recorded as reliably as
+    it publishes, with its history if it keeps one. A message delivered by several of a
+    topic's subscriptions is written once (publisher GID and sequence number tell them apart).
+    Publishers of another type than the topic's (the known one, else the first discovered)
+    are ignored with a warning.
+
+    Readiness: the recorder is ready once every subscription exists and every publisher
+    discovered in the first ``discovery_s`` seconds is matched (or ``ready_timeout_s`` passed:
+    ``RecordReady.unmatched`` names the topics still waiting). It then subscribes to
+    :data:`RECORDER_READY_TOPIC` (after its other subscriptions, so a node that discovered
+    that one has discovered them) and calls ``ready``. What it guarantees:
+
+    - a publisher of a known topic that appears later finds the recorder's subscription in
+      the graph: once the publisher's node has discovered it, a publisher created then is
+      matched at once and everything it publishes is recorded (completely for a reliable
+      publisher whose history keeps up with the recorder);
+    - ``armourcam replay BAG --wait-for armourcam/recorder_ready`` (same namespace) starts
+      publishing only after that, plus a second (``match_grace_s``): the replay is recorded
+      whole even when started together with the recorder, or while other nodes (a running
+      graph) already satisfy its own wait for subscribers. Without ``--wait-for`` a replay
+      started after ``ready`` is recorded whole when the recorder is the only subscriber of
+      its images and camera info (the replay waits for it; latched topics keep their
+      history anyway), else only if it discovers the recorder within that second. With
+      several recorders ``--wait-for`` waits for one;
+    - latched (transient-local) topics are recorded with the history their publishers keep
+      (up to 100 messages), whenever the recorder joins;
+    - a topic of unknown type is subscribed only when its first publisher is discovered: what
+      that publisher sent before the match is lost, unless it is latched.
+
+    Log time: a message's source timestamp (when its publisher published it, on that
+    publisher's clock; the receipt time when the middleware gives none), so latched history
+    delivered late is logged when it was published and the bag orders messages as they were
+    published (``armourcam analyze`` orders hall events against frames by it). Across hosts
+    the clocks must agree (NTP, PTP). A bag may start before its recording did, by the age of
+    the oldest latched message. Messages are written as they arrive; bag readers sort by log
+    time (a recovered, truncated MCAP is read in file order).
+
+    Storage: messages are stored as received (CDR bytes, not decoded). A topic enters the bag
+    when its first publisher is discovered (a topic without publishers is left out), with the
+    offered QoS profiles of the publishers discovered by then, so a replay republishes latched
+    topics latched.
     """
     from armourcam import bagio
 
     use_dds_profile()
     rclpy.init(args=["armourcam-record", "--ros-args", *ros_args])
     node = rclpy.create_node("armourcam_record")
-    topics = list(dict.fromkeys(node.resolve_topic_name(t) for t in topics))
-    counts: dict[str, int] = dict.fromkeys(topics, 0)
-    lock = threading.Lock()
+    counts: dict[str, int] = dict.fromkeys((node.resolve_topic_name(t) for t in topics), 0)
     stop = stop or threading.Event()
     executor = SingleThreadedExecutor()
     executor.add_node(node)
+    t_start = time.monotonic()
+    t_end = None if duration is None else t_start + duration
+    announced = False
     try:
         with bagio.BagWriter(out) as writer:
-            pending = set(topics)
-            t_end = None if duration is None else time.monotonic() + duration
+            recorder = _Recorder(node, writer, counts, types or {})
             while not stop.is_set():
-                if pending:
-                    for topic in sorted(pending):
-                        infos = node.get_publishers_info_by_topic(topic)
-                        if not infos:
-                            continue  # no publisher yet: its QoS decides the subscription's
-                        msgtype = infos[0].topic_type
-                        offered = [i.qos_profile for i in infos if i.topic_type == msgtype]
-                        writer.add_topic(topic, msgtype, offered_qos=offered)
-
-                        def cb(raw: bytes, topic: str = topic, msgtype: str = msgtype) -> None:
-                            # Stored as received: the CDR bytes rosbag2 would store (a 6 MP
-                            # frame is not decoded and encoded again).
-                            with lock:
-                                writer.write_raw(topic, msgtype, raw, time.time_ns())
-                                counts[topic] += 1
-
-                        node.create_subscription(
-                            message_class(msgtype), topic, cb, _recording_qos(offered), raw=True
-                        )
-                        pending.discard(topic)
+                recorder.follow_publishers()
                 executor.spin_once(timeout_sec=0.1)
-                if t_end is not None and time.monotonic() > t_end:
+                now = time.monotonic()
+                if not announced and now - t_start >= discovery_s:
+                    unmatched = recorder.unmatched()
+                    if not unmatched or now - t_start >= ready_timeout_s:
+                        recorder.announce_ready()
+                        if ready is not None:
+                            ready(recorder.readiness(unmatched))
+                        announced = True
+                if t_end is not None and now > t_end:
                     break
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -1136,6 +1370,200 @@ def record_topics(
         node.destroy_node()
         rclpy.try_shutdown()
     return counts
+
+
+#: Types whose publishers in the graph latch (RELIABLE + TRANSIENT_LOCAL): the record streams in
+#: reliable mode (:func:`record_qos`) and the matcher's outputs.
+_LATCHED_TYPES = frozenset({"sensor_msgs/msg/PointCloud2", "visualization_msgs/msg/MarkerArray"})
+#: Events and the report: a replay publishes events latched (:func:`event_qos`), the matcher its
+#: report too, while a hall or an operator's tool may publish volatile, which a transient-local
+#: reader never matches; so both readers (as the matcher's hall inputs).
+_EVENT_TYPES = frozenset({"std_msgs/msg/String", "std_msgs/msg/Bool", "std_msgs/msg/Empty"})
+#: Messages remembered to write a message delivered by two subscriptions once.
+_SEEN_WINDOW = 4096
+
+
+def _expected_offers(msgtype: str) -> list[QoSProfile]:
+    """The QoS profiles the graph's (and a replay's) publishers of ``msgtype`` offer: a
+    recording subscribes to match them before any publisher is discovered."""
+    reliable = stream_qos("reliable", 10)
+    if msgtype in _EVENT_TYPES:
+        return [latched_qos(), reliable]
+    if msgtype in _LATCHED_TYPES:
+        return [latched_qos()]
+    return [reliable]
+
+
+def _serves(subscription: QoSProfile, offered: QoSProfile) -> bool:
+    """Whether a subscription with QoS ``subscription`` matches a publisher offering
+    ``offered`` (reliability and durability; the only policies a recording sets)."""
+    reliable_ok = (
+        subscription.reliability != ReliabilityPolicy.RELIABLE
+        or offered.reliability == ReliabilityPolicy.RELIABLE
+    )
+    durable_ok = (
+        subscription.durability != DurabilityPolicy.TRANSIENT_LOCAL
+        or offered.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    )
+    return reliable_ok and durable_ok
+
+
+class _Recorder:
+    """Subscriptions, de-duplication and bag writing of one :func:`record_topics` run.
+
+    Runs on the recording's one executor thread (subscriptions and polling alike).
+    """
+
+    def __init__(
+        self, node: Node, writer: Any, counts: dict[str, int], types: Mapping[str, str]
+    ) -> None:
+        from armourcam.bagio import normal_type
+
+        self.node = node
+        self.writer = writer
+        self.counts = counts  # full name -> messages written; updated in place
+        known = {node.resolve_topic_name(t): normal_type(mt) for t, mt in types.items()}
+        self.types = {t: known[t] for t in counts if t in known}
+        # Per topic, its subscriptions by (reliability, durability).
+        self.subs: dict[str, dict[tuple[Any, Any], Any]] = {t: {} for t in counts}
+        self._in_bag: set[str] = set()
+        self._warned: set[tuple[str, str]] = set()
+        self._seen: deque[tuple[Any, ...]] = deque()
+        self._seen_set: set[tuple[Any, ...]] = set()
+        self._next_poll = 0.0
+        self._ready_sub: Any = None
+        for topic, msgtype in self.types.items():
+            for offered in _expected_offers(msgtype):
+                self._subscribe(topic, offered)
+
+    def follow_publishers(self) -> None:
+        """Subscribe to match publishers discovered since the last call (every 0.1 s at most)."""
+        now = time.monotonic()
+        if now < self._next_poll:
+            return
+        self._next_poll = now + 0.1
+        for topic in list(self.subs):
+            infos = self.node.get_publishers_info_by_topic(topic)
+            if not infos:
+                continue
+            msgtype = self.types.setdefault(topic, infos[0].topic_type)
+            for other in {i.topic_type for i in infos} - {msgtype}:
+                self._warn_once(topic, f"{topic}: ignoring publishers of {other}, not {msgtype}")
+            offered = [i.qos_profile for i in infos if i.topic_type == msgtype]
+            if not offered:
+                continue
+            try:
+                for qos in offered:
+                    self._subscribe(topic, qos)
+            except GraphError as err:  # a type rclpy cannot import: record the other topics
+                self._warn_once(topic, f"{topic}: not recorded: {err}")
+                del self.subs[topic]
+                continue
+            self._enter_bag(topic)
+
+    def unmatched(self) -> list[str]:
+        """Topics with a discovered publisher that no subscription of the topic matched yet."""
+        out = []
+        for topic, subs in self.subs.items():
+            msgtype = self.types.get(topic)
+            if msgtype is None:
+                continue
+            offered = [
+                i.qos_profile
+                for i in self.node.get_publishers_info_by_topic(topic)
+                if i.topic_type == msgtype
+            ]
+            if any(self._key(_recording_qos([q])) not in subs for q in offered) or any(
+                sub.get_publisher_count() < sum(_serves(sub.qos_profile, q) for q in offered)
+                for sub in subs.values()
+            ):
+                out.append(topic)
+        return out
+
+    def announce_ready(self) -> None:
+        """Subscribe to :data:`RECORDER_READY_TOPIC` (once): the graph's sign of readiness."""
+        if self._ready_sub is None:
+            from std_msgs.msg import Empty
+
+            self._ready_sub = self.node.create_subscription(
+                Empty, RECORDER_READY_TOPIC, lambda _msg: None, stream_qos("reliable", 1)
+            )
+
+    def readiness(self, unmatched: Sequence[str]) -> RecordReady:
+        """The :class:`RecordReady` of now, with ``unmatched`` from :meth:`unmatched`."""
+        return RecordReady(
+            subscribed=tuple(t for t, subs in self.subs.items() if subs),
+            awaiting=tuple(t for t, subs in self.subs.items() if not subs),
+            unmatched=tuple(unmatched),
+        )
+
+    @staticmethod
+    def _key(qos: QoSProfile) -> tuple[Any, Any]:
+        return qos.reliability, qos.durability
+
+    def _subscribe(self, topic: str, offered: QoSProfile) -> None:
+        """Add a subscription of ``topic`` mirroring ``offered``, unless one has that QoS."""
+        qos = _recording_qos([offered])
+        key = self._key(qos)
+        if key in self.subs[topic]:
+            return
+
+        def on_message(raw: bytes, info: Any, topic: str = topic) -> None:
+            # Two arguments: rclpy passes the MessageInfo (source timestamp, publisher GID).
+            self._on_message(topic, raw, info)
+
+        self.subs[topic][key] = self.node.create_subscription(
+            message_class(self.types[topic]), topic, on_message, qos, raw=True
+        )
+
+    def _enter_bag(self, topic: str) -> None:
+        """Add ``topic`` to the bag, with its discovered publishers' offered QoS."""
+        if topic in self._in_bag:
+            return
+        offered = [
+            i.qos_profile
+            for i in self.node.get_publishers_info_by_topic(topic)
+            if i.topic_type == self.types[topic]
+        ]
+        self.writer.add_topic(topic, self.types[topic], offered_qos=offered)
+        self._in_bag.add(topic)
+
+    def _on_message(self, topic: str, raw: bytes, info: Mapping[str, Any]) -> None:
+        if len(self.subs[topic]) > 1 and self._repeated(topic, raw, info):
+            return
+        # A message can come before the poll has seen its publisher (the graph cache lags).
+        self._enter_bag(topic)
+        source_ns = int(info.get("source_timestamp") or 0)
+        t_ns = source_ns if source_ns > 0 else time.time_ns()
+        # Stored as received: the CDR bytes rosbag2 would store (a 6 MP frame is not decoded
+        # and encoded again).
+        self.writer.write_raw(topic, self.types[topic], raw, t_ns)
+        self.counts[topic] += 1
+
+    def _repeated(self, topic: str, raw: bytes, info: Mapping[str, Any]) -> bool:
+        """Whether this message came already through another subscription of ``topic``."""
+        gid = info.get("publisher_gid")
+        seq = info.get("publication_sequence_number")
+        key: tuple[Any, ...]
+        if gid is not None and seq is not None:
+            key = (topic, bytes(gid.get("data", b"")), int(seq))
+        elif info.get("source_timestamp"):
+            # Without GIDs (another middleware): one publisher's stamp and size.
+            key = (topic, int(info["source_timestamp"]), len(raw))
+        else:
+            return False
+        if key in self._seen_set:
+            return True
+        self._seen.append(key)
+        self._seen_set.add(key)
+        if len(self._seen) > _SEEN_WINDOW:
+            self._seen_set.discard(self._seen.popleft())
+        return False
+
+    def _warn_once(self, topic: str, text: str) -> None:
+        if (topic, text) not in self._warned:
+            self._warned.add((topic, text))
+            self.node.get_logger().warning(text)
 
 
 def _recording_qos(offered: Sequence[QoSProfile], depth: int = 100) -> QoSProfile:

@@ -28,6 +28,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .image_codec import jpeg_damage
+
 _PNG = b"\x89PNG\r\n\x1a\n"
 _JPEG = b"\xff\xd8\xff"
 _TIFF = (b"II*\x00", b"MM\x00*")
@@ -83,8 +85,10 @@ def read_image(path: str | Path) -> NDArray[np.generic]:
         raise ImageReadError(f"{name}: not a PNG, JPEG or TIFF image ({len(data)} bytes)")
     if kind == "png" and b"IEND" not in data[-64:]:
         raise ImageReadError(f"{name}: truncated PNG ({len(data)} bytes, no IEND chunk)")
-    if kind == "jpeg" and b"\xff\xd9" not in data[-4096:]:
-        raise ImageReadError(f"{name}: truncated JPEG ({len(data)} bytes, no end-of-image marker)")
+    if kind == "jpeg" and (damage := jpeg_damage(data)) is not None:
+        # The one structure check of the image codec (the node's frames get the same).
+        kind_of = "truncated" if "truncated" in damage else "damaged"
+        raise ImageReadError(f"{name}: {kind_of} JPEG ({len(data)} bytes): {damage}")
     flags = cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION
     with _decoder_messages() as messages:
         image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)

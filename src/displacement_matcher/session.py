@@ -6,7 +6,9 @@ A monitoring session between wave runs, as a lab runs it:
    first run: once ``baseline_frames`` consecutive frames agree (the scene is settled), their pose
    sets are fused (:func:`pose_estimator.fuse`, a covariance-weighted average) into the baseline.
 2. **Run.** The hall announces a run id (``/hall/run_id``) and the run state (``/hall/run_active``).
-   While a run is active the scene moves and frames are ignored.
+   While a run is active the scene moves and frames are ignored. No two runs of a session share
+   an id: the id of a completed run announced again is ignored with a warning and the run gets
+   its automatic name (``run-NNN``, see :meth:`Session.set_run_id`).
 3. **Settling.** When the run stops, frames are collected until ``settle_frames`` consecutive
    frames agree within ``settle_tolerance_mm`` (or ``settle_timeout_frames`` pass, or
    ``settle_timeout_s`` seconds: the report then says ``"settled": false``); those frames are
@@ -389,8 +391,12 @@ class Session:
         # not yet returned to the caller (see _with_save_notices).
         self._unsaved: dict[Path, Any] = {}
         self._save_notices: list[Event] = []
-        # Sequence of the last run whose id the hall announced again (warned once per run).
-        self._reused_id_warned: int | None = None
+        # The id of every completed run (all of data_dir's, not only the runs in memory) -> the
+        # sequence of the run that has it: no two runs get one id.
+        self._used_run_ids: dict[str, int] = {}
+        # Ids of completed runs announced again since the last run completed, each warned once
+        # (a hall republishing its id periodically must not flood the log).
+        self._reused_id_warned: set[str] = set()
         self._baseline_due = False
         self._window = _Window(max(config.baseline_frames, config.settle_frames))
         self.phase = Phase.WAITING_BASELINE
@@ -424,7 +430,13 @@ class Session:
 
     @_with_save_notices
     def set_run_id(self, run_id: str) -> list[Event]:
-        """The hall announced the id of the current run (while one is active) or of the next."""
+        """The hall announced the id of the current run (while one is active) or of the next.
+
+        The id of a run this session already completed (the last one republished, or an older
+        one reused; also one on disk from before a restart) is ignored with a warning, once per
+        run: no two runs, and no two run files, share an id. The run keeps or gets its
+        automatic name ``run-NNN`` (``run-NNN-2``, ... when a completed run has that one).
+        """
         run_id = run_id.strip()
         if not run_id:
             return [Notice("warn", "empty run id ignored")]
@@ -432,25 +444,48 @@ class Session:
         if self._deferred_start is None and (self._run_active or settling_unnamed):
             # Announced just before the start but delivered after it, even after the stop:
             # separate topics carry no common order. A named run keeps its name.
+            if run_id in self._used_run_ids:
+                return self._reused_run_id(run_id, f"run {self._current_run_id} keeps its name")
             self._current_run_id = run_id
             self._current_run_id_auto = False
             self._save_state()
-        elif self.runs and self.runs[-1].run_id == run_id and self.phase != Phase.SETTLING:
-            last = self.runs[-1]
-            if self._reused_id_warned == last.sequence:
-                return []  # a hall republishing its id periodically must not flood the log
-            self._reused_id_warned = last.sequence
-            name = self._pending_run_id or f"run-{self.runs_completed + 1:03d}"
-            return [
-                Notice(
-                    "warn",
-                    f"run id {run_id} already measured (run {last.sequence}); ignored: the next "
-                    f"run will be named {name} unless the hall announces a new id",
-                )
-            ]
+        elif run_id in self._used_run_ids:
+            return self._reused_run_id(
+                run_id,
+                f"the next run will be named {self._next_run_id()} unless the hall announces a "
+                "new id",
+            )
         else:
             self._pending_run_id = run_id
         return []
+
+    def _auto_run_id(self) -> str:
+        """``run-NNN`` for the next run (NNN its sequence), suffixed ``-2``, ``-3``, ... when a
+        completed run already has that id (a hall may announce ids of that form)."""
+        base = name = f"run-{self.runs_completed + 1:03d}"
+        k = 1
+        while name in self._used_run_ids:
+            k += 1
+            name = f"{base}-{k}"
+        return name
+
+    def _next_run_id(self) -> str:
+        """The name the next run would get if it started now."""
+        pending = self._pending_run_id
+        if pending is not None and pending not in self._used_run_ids:
+            return pending
+        return self._auto_run_id()
+
+    def _reused_run_id(self, run_id: str, outcome: str) -> list[Event]:
+        """The warning, once per run, for ``run_id`` announced again after its run completed;
+        ``outcome`` says what the run is named instead."""
+        if run_id in self._reused_id_warned:
+            return []  # a hall republishing its id periodically must not flood the log
+        self._reused_id_warned.add(run_id)
+        sequence = self._used_run_ids[run_id]
+        return [
+            Notice("warn", f"run id {run_id} already measured (run {sequence}); ignored: {outcome}")
+        ]
 
     @_with_save_notices
     def set_run_active(
@@ -511,12 +546,18 @@ class Session:
             self._baseline_due = True
         else:
             self._window.clear()
-        self._current_run_id_auto = self._pending_run_id is None
-        self._current_run_id = self._pending_run_id or f"run-{self.runs_completed + 1:03d}"
-        self._pending_run_id = None
+        events: list[Event] = []
+        run_id, self._pending_run_id = self._pending_run_id, None
+        if run_id is not None and run_id in self._used_run_ids:
+            # Announced while the run of that id settled (the hall republishing it): that run
+            # has completed since.
+            events += self._reused_run_id(run_id, f"this run is named {self._auto_run_id()}")
+            run_id = None
+        self._current_run_id_auto = run_id is None
+        self._current_run_id = run_id or self._auto_run_id()
         self.phase = Phase.RUN_ACTIVE
         self._save_state()
-        return [Notice("info", f"run {self._current_run_id} started")]
+        return [*events, Notice("info", f"run {self._current_run_id} started")]
 
     def _begin_deferred_run(self) -> list[Event]:
         stamp, self._deferred_start = self._deferred_start, None
@@ -747,7 +788,7 @@ class Session:
         if not (settled or force or self._settle_count >= cfg.settle_timeout_frames):
             return []
         frames = self._last_frames(cfg.settle_frames)
-        run_id = self._current_run_id or f"run-{self.runs_completed + 1:03d}"
+        run_id = self._current_run_id or self._auto_run_id()
         events: list[Event] = []
         no_frame_error = "no frame after run"
         if not frames and waited_s is not None:
@@ -813,6 +854,8 @@ class Session:
         run = RunRecord(run_id, self.runs_completed + 1, after, report, markers, rows)
         self.runs.append(run)
         self.runs_completed += 1
+        self._used_run_ids[run_id] = run.sequence
+        self._reused_id_warned.clear()  # the next run is warned afresh
         del self.runs[:-RUNS_IN_MEMORY]
         self._save_run(run)
         self._current_run_id = None
@@ -992,6 +1035,7 @@ class Session:
                     raise SessionError(f"{run_path}: malformed run record: {err}") from err
             self.runs.sort(key=lambda r: r.sequence)
             self.runs_completed = max((r.sequence for r in self.runs), default=0)
+            self._used_run_ids = {r.run_id: r.sequence for r in self.runs}
             del self.runs[:-RUNS_IN_MEMORY]
         state = data_dir / SESSION_STATE_FILE
         if state.exists():

@@ -20,16 +20,18 @@ Published
     ``detections_topic`` (default ``armourcam/detections``), ``sensor_msgs/PointCloud2`` of
     ``FiducialDetectionRecord`` rows (fields generated from ``msg/``), QoS as the input
     (``reliable`` or ``sensor_data``), one message per decoded frame (an empty cloud when
-    nothing is found).
+    nothing is found, and for a valid image smaller than the smallest fiducial looked for,
+    ``MIN_OUTER_DIAMETER_PX`` = 18 px, on either side: ``frames_too_small``).
     ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``, reliable, every
-    ``diagnostics_period_s``: frames received / published / dropped, the last problem, the
-    age of the last image (``last_input_age_s``); WARN while a frame was dropped in the last
-    30 s (:class:`armourcam.graph.RecentProblems`) and while no image came for more than
+    ``diagnostics_period_s``: frames received / published / dropped / too small, the last
+    problem, the age of the last image (``last_input_age_s``); WARN while a frame was dropped
+    in the last 30 s (:class:`armourcam.graph.RecentProblems`) and while no image came for more than
     ``stale_after_s`` after earlier ones (a stalled camera; before the first image: OK,
     :class:`armourcam.graph.InputAge`).
 
-A frame that cannot be decoded (unknown encoding, wrong ``step``, zero size, corrupt JPEG...) or
-detected is logged with the reason and dropped; the node lives on.
+A frame that cannot be decoded (unknown encoding, wrong ``step``, zero size, a JPEG truncated
+before its end-of-image marker or without scan data: :func:`armourcam.image_codec.jpeg_damage`...)
+or detected is logged with the reason, counted (``frames_dropped``) and dropped; the node lives on.
 
 Parameters (all read-only unless noted): see :data:`PARAMS` (``image_topic``, ``transport``,
 ``detections_topic``, ``qos``, ``queue_depth``, ``design``, ``subpixel``, ``decimate``,
@@ -63,7 +65,13 @@ from armourcam.graph import (
 )
 
 from .design import DESIGNS
-from .detect import DECIMATE_FACTORS, SUBPIXEL_METHODS, DesignChoice, SubpixelMethod
+from .detect import (
+    DECIMATE_FACTORS,
+    MIN_OUTER_DIAMETER_PX,
+    SUBPIXEL_METHODS,
+    DesignChoice,
+    SubpixelMethod,
+)
 
 PARAMS = (
     Param("image_topic", "camera/image_raw", "Camera image topic (raw images)."),
@@ -160,7 +168,7 @@ class FiducialDetectorNode(Node):
         msg_type: Any = CompressedImage if cfg.transport == "compressed" else Image
         self._sub = self.create_subscription(msg_type, topic, self._on_image, qos)
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
-        self.received = self.published = self.dropped = 0
+        self.received = self.published = self.dropped = self.too_small = 0
         self.problems = RecentProblems()
         self.frame_times = FrameTimes()
         self.input_age = InputAge("image", cfg.stale_after_s)
@@ -175,12 +183,18 @@ class FiducialDetectorNode(Node):
         t0 = time.perf_counter()
         try:
             image = image_codec.decode(msg)
-            dets = self._detect(
-                image,
-                design=cast(DesignChoice, self.config.design),
-                subpixel=cast(SubpixelMethod, self.config.subpixel),
-                decimate=self.config.decimate,
-            )
+            if min(image.shape[:2]) < MIN_OUTER_DIAMETER_PX:
+                # A valid frame too small for the smallest fiducial looked for holds none: its
+                # answer is an empty cloud (downstream stays in step frame by frame), not a drop.
+                dets = []
+                self._too_small(image.shape[1], image.shape[0])
+            else:
+                dets = self._detect(
+                    image,
+                    design=cast(DesignChoice, self.config.design),
+                    subpixel=cast(SubpixelMethod, self.config.subpixel),
+                    decimate=self.config.decimate,
+                )
         except Exception as err:
             # image_codec's and the detector's input errors are ValueErrors; anything else is a
             # bug worth its type name in the log, but still not worth the rig's monitoring.
@@ -201,6 +215,14 @@ class FiducialDetectorNode(Node):
         self.published += 1
         self.frame_times.add(1e3 * (time.perf_counter() - t0))
 
+    def _too_small(self, width: int, height: int) -> None:
+        self.too_small += 1
+        self.get_logger().warning(
+            f"image {width}x{height} is smaller than the smallest fiducial looked for "
+            f"({MIN_OUTER_DIAMETER_PX:g} px): empty detections published",
+            throttle_duration_sec=10.0,
+        )
+
     def _publish_diagnostics(self) -> None:
         # A stalled camera is a state (WARN while it lasts); drops are events, shown while recent.
         level, message = merge_status(
@@ -216,6 +238,7 @@ class FiducialDetectorNode(Node):
                 "frames_received": str(self.received),
                 "frames_published": str(self.published),
                 "frames_dropped": str(self.dropped),
+                "frames_too_small": str(self.too_small),
                 **self.input_age.values(),
                 **self.problems.values(),
                 **self.frame_times.values(),

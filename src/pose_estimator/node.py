@@ -39,7 +39,14 @@ already taken (same header stamp and frame_id, among the last 256: the detector'
 transient-local history delivered again, a second publisher of the same frames) is not
 processed again (``frames_duplicate``).
 
-Parameters: see :data:`PARAMS`.
+Parameters: see :data:`PARAMS`. ``diameter_mm`` alone may change at runtime (``ros2 param set
+/pose_estimator diameter_mm 7``; an integer is taken as its float, as at start-up; the start-up
+rules apply, :func:`armourcam.graph.parameter_problem`). Positions scale with it, so poses
+published after a change are not comparable with those before: a displacement baseline the
+matcher captured with the old diameter no longer fits, and must be re-captured. The node logs a
+WARN saying so, is WARN for 30 s, and its /diagnostics carry ``diameter_mm``,
+``diameter_mm_before`` and ``diameter_changed_at`` (node clock, ROS time in seconds, as the
+frames' stamps; empty before any change) from then on.
 """
 
 from __future__ import annotations
@@ -68,6 +75,7 @@ from armourcam.graph import (
     RecentStamps,
     declare_parameters,
     merge_status,
+    parameter_problem,
     publish_diagnostics,
     record_qos,
     run_node,
@@ -98,7 +106,8 @@ PARAMS = (
     Param(
         "diameter_mm",
         7.1,
-        "Printed diameter of the fiducials' outer circle, mm.",
+        "Printed diameter of the fiducials' outer circle, mm. Changeable at runtime, but a change "
+        "rescales every position: re-capture the displacement baseline after it.",
         read_only=False,
         minimum=0.1,
     ),
@@ -111,6 +120,9 @@ PARAMS = (
         minimum=0.0,
     ),
 )
+
+#: The parameters a set_parameters call may change (checked by the start-up rules).
+_WRITABLE = {p.name: p for p in PARAMS if not p.read_only}
 
 
 @dataclass(frozen=True, slots=True)
@@ -183,7 +195,10 @@ class PoseEstimatorNode(Node):
         if self.camera is None:
             self.create_subscription(CameraInfo, cfg.camera_info_topic, self._on_camera_info, qos)
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics)
+        self._diameter_mm = cfg.diameter_mm
+        self._diameter_before = self._diameter_changed_at = ""
         self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(self._parameters_set)
         self._pending: deque[PointCloud2] = deque()
         self.received = self.published = self.dropped = 0
         self.problems = RecentProblems()
@@ -199,15 +214,31 @@ class PoseEstimatorNode(Node):
         )
 
     def _check_parameters(self, params: list[Any]) -> SetParametersResult:
-        """Runtime changes: ``diameter_mm`` must stay a positive finite number."""
+        """Runtime changes of the writable parameters (``diameter_mm``): the start-up rules."""
         for p in params:
-            if p.name == "diameter_mm":
-                value = p.value
-                if not isinstance(value, float | int) or not (0 < float(value) < 1e4):
-                    return SetParametersResult(
-                        successful=False, reason=f"diameter_mm must be > 0 mm, got {value!r}"
-                    )
+            spec = _WRITABLE.get(p.name)
+            problem = None if spec is None else parameter_problem(spec, p.value)
+            if problem is not None:
+                return SetParametersResult(successful=False, reason=f"{p.name} {problem}")
         return SetParametersResult(successful=True)
+
+    def _parameters_set(self, params: list[Any]) -> None:
+        """After a successful change: a new ``diameter_mm`` rescales every position from now on,
+        so baselines measured before it are not comparable (WARN, and in /diagnostics)."""
+        for p in params:
+            if p.name != "diameter_mm" or float(p.value) == self._diameter_mm:
+                continue
+            old, new = self._diameter_mm, float(p.value)
+            self._diameter_mm = new
+            self._diameter_before = f"{old:g}"
+            self._diameter_changed_at = f"{self.get_clock().now().nanoseconds * 1e-9:.3f}"
+            text = (
+                f"diameter_mm changed from {old:g} to {new:g} mm at {self._diameter_changed_at}: "
+                f"positions from now on are {new / old:.4g} times those before; displacement "
+                "baselines measured before the change are not comparable, re-capture the baseline"
+            )
+            self.problems.report("warn", text)
+            self.get_logger().warning(text)
 
     def _diameter(self) -> float:
         value = self.get_parameter("diameter_mm").value
@@ -294,6 +325,9 @@ class PoseEstimatorNode(Node):
                 "frames_dropped": str(self.dropped),
                 "frames_pending": str(len(self._pending)),
                 "frames_duplicate": str(self.seen.repeats),
+                "diameter_mm": f"{self._diameter_mm:g}",
+                "diameter_mm_before": self._diameter_before,
+                "diameter_changed_at": self._diameter_changed_at,
                 **self.input_age.values(),
                 **self.problems.values(),
                 **self.frame_times.values(),

@@ -171,3 +171,72 @@ def test_damaged_data_inside_a_file_is_an_error_naming_it(  # type: ignore[no-un
     out, err = capfd.readouterr()
     assert out == "" and err == ""
     assert read_image(good).shape == scene_image.shape
+
+
+def test_table_gives_the_outer_circle_of_both_designs(
+    tmp_path: Path, scene_image: np.ndarray, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The table's semi-axes are the outermost fitted circle's, named: for both 60 px fiducials
+    the printed outer circle (30 px), not the ``dot`` design's 9 px pose dot."""
+    path = tmp_path / "scene.png"
+    cv2.imwrite(str(path), scene_image)
+    status, out, _ = _run(capsys, str(path))
+    assert status == 0
+    head, *rows = out.splitlines()[1:]
+    assert head.endswith("semi-axes (px)    circle")
+    by_design = {row.split()[1]: row.split() for row in rows}
+    assert set(by_design) == {"ring", "dot"}
+    for words in by_design.values():
+        major, x, minor, circle = words[-4:]
+        assert x == "x" and circle == "outer"
+        assert float(major) == pytest.approx(30.0, abs=0.3)
+        assert float(minor) == pytest.approx(30.0, abs=0.3)
+    # Columns line up: the circle names start under the header's "circle".
+    assert {row.index("outer") for row in rows} == {head.index("circle")}
+
+
+def test_outer_ellipse_names_the_circle_it_gives() -> None:
+    """Where the outer circle was not fitted the largest fitted one is given and named."""
+    from armourcam.commands.detect import outer_ellipse
+
+    def record(design: str, *radii: float) -> dict[str, object]:
+        ellipses = [{"radius": r, "semi_major": 30.0 * r, "semi_minor": 29.0 * r} for r in radii]
+        return {"design": design, "ellipses": ellipses}
+
+    assert outer_ellipse(record("dot", 0.3, 1.0)) == ({"radius": 1.0, **_axes(1.0)}, "outer")
+    assert outer_ellipse(record("dot", 0.3)) == ({"radius": 0.3, **_axes(0.3)}, "dot")
+    assert outer_ellipse(record("ring", 0.8, 0.24)) == ({"radius": 0.8, **_axes(0.8)}, "r=0.80")
+    assert outer_ellipse(record("ring", 0.24))[1] == "dot"
+
+
+def _axes(radius: float) -> dict[str, float]:
+    return {"semi_major": 30.0 * radius, "semi_minor": 29.0 * radius}
+
+
+def test_truncated_jpeg_files_get_one_line_errors(
+    tmp_path: Path, scene_image: np.ndarray, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The damaged JPEGs the image codec now refuses (cut short with an ``FF D9`` left in a
+    comment segment; headers and end-of-image marker but no scan data) are one-line errors of
+    ``armourcam detect`` too, naming the file; the good file is still processed."""
+    ok, buf = cv2.imencode(".jpg", scene_image)
+    assert ok
+    jpeg = buf.tobytes()
+    jpeg = jpeg[:2] + b"\xff\xfe\x00\x08ab\xff\xd9cd" + jpeg[2:]
+    sos = jpeg.index(b"\xff\xda")
+    scan = sos + 2 + int.from_bytes(jpeg[sos + 2 : sos + 4], "big")
+    files = {"cut.jpg": jpeg[: scan + 200], "noscan.jpg": jpeg[:scan] + b"\xff\xd9"}
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    good = tmp_path / "good.jpg"
+    good.write_bytes(jpeg)
+    paths = [str(tmp_path / n) for n in files]
+    status, out, err = _run(capsys, *paths, str(good))
+    assert status == 1 and f"{good}: 2 fiducials" in out
+    lines = err.strip().splitlines()
+    assert len(lines) == 2
+    # Named by the codec's structure check (the same rule as the node's frames).
+    cut, noscan = lines
+    assert cut.startswith(f"armourcam detect: error: {paths[0]}: truncated JPEG"), cut
+    assert noscan.startswith(f"armourcam detect: error: {paths[1]}: damaged JPEG"), noscan
+    assert "no entropy-coded" in noscan or "scan" in noscan, noscan

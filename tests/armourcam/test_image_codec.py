@@ -258,6 +258,75 @@ def test_bad_compressed_images_are_refused() -> None:
         ic.decode(SimpleNamespace(format="jpeg", data=garbled))
 
 
+def _with_comment(jpeg: bytes, text: bytes) -> bytes:
+    """``jpeg`` with a COM segment holding ``text`` right after SOI (APPn/COM bytes are free:
+    an EXIF thumbnail's own end-of-image marker is the common case)."""
+    return jpeg[:2] + b"\xff\xfe" + (2 + len(text)).to_bytes(2, "big") + text + jpeg[2:]
+
+
+def _scan_start(jpeg: bytes) -> int:
+    """Offset of the first byte of entropy-coded data (after the SOS segment)."""
+    sos = jpeg.index(b"\xff\xda")
+    return sos + 2 + int.from_bytes(jpeg[sos + 2 : sos + 4], "big")
+
+
+def test_damaged_jpegs_that_libjpeg_would_still_decode_are_refused() -> None:
+    """Found from the marker structure (thread-safe, no capture of libjpeg's stderr): a frame
+    cut short whose last 4 KB still hold an ``FF D9`` (inside a comment/EXIF segment: it used
+    to pass for the end-of-image marker) is named truncated; a frame with headers and an
+    end-of-image marker but no scan data, which libjpeg decodes to a flat grey image ("Corrupt
+    JPEG data: premature end of data segment" on descriptor 2 only), is refused."""
+    rng = np.random.default_rng(5)
+    grey = rng.integers(0, 256, size=(40, 48)).astype(np.uint8)
+    jpeg = _with_comment(ic.compressed_to_msg_fields(grey, "jpeg")["data"], b"ab\xff\xd9cd")
+    assert len(jpeg) < 4096 and ic.jpeg_damage(jpeg) is None
+    scan = _scan_start(jpeg)
+    cut = jpeg[: (scan + len(jpeg)) // 2]
+    with pytest.raises(
+        ImageCodecError, match=r"corrupt JPEG \(\d+ bytes\): no end-of-image .*truncated"
+    ):
+        ic.decode(SimpleNamespace(format="jpeg", data=cut))
+    no_scan = jpeg[:scan] + b"\xff\xd9"
+    with pytest.raises(
+        ImageCodecError, match=r"corrupt JPEG .* no image data .* cannot be decoded"
+    ):
+        ic.decode(SimpleNamespace(format="jpeg", data=no_scan))
+    # Cut anywhere before its end-of-image marker (headers, segment lengths, scan data, the
+    # marker's first byte): damaged.
+    for end in range(2, len(jpeg) - 1):
+        assert ic.jpeg_damage(jpeg[:end]) is not None, end
+    bad_length = jpeg[:2] + b"\xff\xfe\x00\x01" + jpeg[2:]
+    assert "has length 1" in (ic.jpeg_damage(bad_length) or "")
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        [],
+        [cv2.IMWRITE_JPEG_PROGRESSIVE, 1],  # several scans, tables between them
+        [cv2.IMWRITE_JPEG_RST_INTERVAL, 2],  # restart markers inside the scan data
+        [cv2.IMWRITE_JPEG_QUALITY, 100, cv2.IMWRITE_JPEG_OPTIMIZE, 1],
+    ],
+    ids=["baseline", "progressive", "restarts", "optimised"],
+)
+def test_whole_jpegs_pass_the_structure_check(params: list[int]) -> None:
+    """No false alarm: any scan layout, ``FF D9`` inside a comment, bytes after the end-of-image
+    marker (cameras padding frames) decode as the plain JPEG does."""
+    ok, buf = cv2.imencode(".jpg", _bgr(), params)
+    assert ok
+    jpeg = buf.tobytes()
+    expected = ic.decode(SimpleNamespace(format="jpeg", data=jpeg))
+    for variant in (
+        jpeg,
+        _with_comment(jpeg, b"\xff\xd9\xff\xda\x00\x08"),
+        jpeg + bytes(100),
+        jpeg + b"\xff\xd8 stale bytes",
+    ):
+        assert ic.jpeg_damage(variant) is None
+        got = ic.decode(SimpleNamespace(format="jpeg", data=variant))
+        assert np.array_equal(got, expected)
+
+
 def test_not_an_image_message() -> None:
     with pytest.raises(ImageCodecError, match="neither sensor_msgs/Image nor CompressedImage"):
         ic.decode(SimpleNamespace(width=3))

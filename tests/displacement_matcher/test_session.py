@@ -616,6 +616,84 @@ def test_a_reused_run_id_warns_once(rng: np.random.Generator) -> None:
     assert done.run.run_id == "run-002"
 
 
+def _measure(s: Session, rng: np.random.Generator, truth: np.ndarray, t: float) -> RunCompleted:
+    """One run from ``t``: started, stopped, settled on two frames of ``truth``."""
+    s.set_run_active(True, t)
+    s.set_run_active(False, t + 1.0)
+    (done,) = of_type(feed(s, [frame(truth, rng) for _ in range(2)], t + 1.5), RunCompleted)
+    return done
+
+
+def test_an_older_runs_id_is_not_given_to_a_second_run(
+    tmp_path: Path, rng: np.random.Generator
+) -> None:
+    """Not only the last run's id: the id of any completed run of the session, also one on disk
+    from before a restart, is ignored with one warning per run, and the run gets a name of its
+    own (and its own run file)."""
+    truth0 = scene(16)
+    s = make(tmp_path, baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    for k, run_id in enumerate(("A", "B")):
+        s.set_run_id(run_id)
+        assert _measure(s, rng, truth0, 10.0 * (k + 1)).run.run_id == run_id
+    (warn,) = s.set_run_id("A")  # run 1's id, after run 2
+    assert isinstance(warn, Notice) and warn.level == "warn"
+    assert "run id A already measured (run 1)" in warn.text and "run-003" in warn.text
+    assert s.set_run_id("A") == []  # once per run
+    assert _measure(s, rng, truth0, 30.0).run.run_id == "run-003"
+
+    # Delivered late, while the run is active: the run keeps its automatic name.
+    s.set_run_active(True, 40.0)
+    (warn,) = s.set_run_id("B")
+    assert isinstance(warn, Notice) and warn.level == "warn"
+    assert "run id B already measured (run 2)" in warn.text and "run-004 keeps" in warn.text
+    s.set_run_active(False, 41.0)
+    (done,) = of_type(feed(s, [frame(truth0, rng) for _ in range(2)], 41.5), RunCompleted)
+    assert done.run.run_id == "run-004"
+
+    # A restarted matcher knows every id on disk, beyond the runs it holds in memory.
+    for k in range(RUNS_IN_MEMORY):
+        s.set_run_id(f"C{k}")
+        _measure(s, rng, truth0, 50.0 + 10.0 * k)
+    r = make(tmp_path, baseline_frames=2, settle_frames=2)
+    assert "A" not in [run.run_id for run in r.runs]
+    (warn,) = r.set_run_id("A")
+    assert isinstance(warn, Notice) and "run id A already measured (run 1)" in warn.text
+    n = r.runs_completed + 1
+    assert _measure(r, rng, truth0, 200.0).run.run_id == f"run-{n:03d}"
+    ids = [json.loads(f.read_text())["run_id"] for f in sorted((tmp_path / "runs").glob("*"))]
+    assert len(ids) == len(set(ids)) == n
+
+
+def test_a_run_id_republished_while_its_run_settles_does_not_name_the_next_run(
+    rng: np.random.Generator,
+) -> None:
+    """A hall republishing the id of the run being settled: that id would have named the next
+    run once the run completed; the next run is named automatically, with a warning."""
+    truth0 = scene(16)
+    s = make(baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    s.set_run_id("A")
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    assert s.set_run_id("A") == []  # run A is not measured yet
+    feed(s, [frame(truth0, rng) for _ in range(2)], 2.5)
+    events = s.set_run_active(True, 3.0)
+    (warn,) = [e for e in of_type(events, Notice) if e.level == "warn"]
+    assert "run id A already measured (run 1); ignored: this run is named run-002" in warn.text
+    assert s.status()["current_run_id"] == "run-002"
+
+
+def test_an_automatic_run_name_taken_by_the_hall_gets_a_suffix(rng: np.random.Generator) -> None:
+    """The hall may use ids of the automatic form: an unnamed run gets ``run-NNN-2`` then."""
+    truth0 = scene(16)
+    s = make(baseline_frames=2, settle_frames=2)
+    feed(s, [frame(truth0, rng) for _ in range(2)], 0.0)
+    s.set_run_id("run-002")
+    assert _measure(s, rng, truth0, 1.0).run.run_id == "run-002"
+    assert _measure(s, rng, truth0, 5.0).run.run_id == "run-002-2"
+
+
 def test_a_short_still_wait_before_the_run_is_a_baseline_without_a_warning(
     rng: np.random.Generator,
 ) -> None:

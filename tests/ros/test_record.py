@@ -1,17 +1,93 @@
 """``armourcam record`` over DDS: subscriptions that match each publisher's QoS (a live camera is
-best effort), the publishers' QoS in the bag's metadata, topics without publishers left out."""
+best effort), the publishers' QoS in the bag's metadata, topics without publishers left out; the
+graph's topics subscribed before their publishers appear (a replay started once the recorder is
+ready is recorded whole), messages logged at their publication time (latched history too), the
+hall events recorded by default."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
-from rosutil import Probe, ros_env
+import pytest
+from rosutil import REPO, Probe, armourcam, ros_env
 
 from armourcam import bagio, graph
-from armourcam.graph import latched_qos, stream_qos
+from armourcam.commands.record import TOPIC_TYPES
+from armourcam.graph import Replayer, event_qos, latched_qos, stream_qos
+
+SESSION = REPO / "bags" / "session_small"
+
+
+class Recorder:
+    """``armourcam record --out BAG ARGS...`` in its own process group; stderr read as it comes."""
+
+    def __init__(self, bag: Path, *args: str) -> None:
+        self.bag = bag
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "armourcam.cli", "record", "--out", str(bag), *args],
+            env=ros_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+        )
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self.lines.append(line)
+
+    def wait_ready(self, timeout: float = 30.0) -> bool:
+        """Wait for the ``armourcam record: ready`` line (False on timeout or exit)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            if any(line.startswith("armourcam record: ready") for line in self.lines):
+                return True
+            if self.proc.poll() is not None or time.monotonic() >= deadline:
+                return False
+            time.sleep(0.05)
+
+    def stop(self) -> str:
+        """Stop it as Ctrl-C does (idempotent); returns its stdout (the counts) and checks that
+        it ended cleanly."""
+        graph.stop_processes([self.proc])
+        out = ""
+        if self.proc.stdout is not None and not self.proc.stdout.closed:
+            out = self.proc.stdout.read()
+            self.proc.stdout.close()
+        self._reader.join(5.0)
+        if self.proc.stderr is not None:
+            self.proc.stderr.close()
+        assert self.proc.returncode == 0, "".join(self.lines)
+        return out
+
+
+@pytest.fixture()
+def recorder() -> Iterator[Callable[..., Recorder]]:
+    """Starts recorders; each is stopped after the test whatever its outcome."""
+    started: list[Recorder] = []
+
+    def start(bag: Path, *args: str) -> Recorder:
+        started.append(Recorder(bag, *args))
+        return started[-1]
+
+    try:
+        yield start
+    finally:
+        for rec in started:
+            graph.stop_processes([rec.proc])
+            for pipe in (rec.proc.stdout, rec.proc.stderr):
+                if pipe is not None:
+                    pipe.close()
 
 
 def test_recording_qos_matches_every_publisher() -> None:
@@ -124,3 +200,157 @@ def test_record_matches_each_publisher_and_stores_its_qos(probe: Probe, tmp_path
         QosReliability.RELIABLE,
         QosDurability.TRANSIENT_LOCAL,
     )
+
+
+def test_up_front_subscriptions_mirror_what_a_replay_offers(probe: Probe) -> None:
+    """For each of the graph's topic types, one of the recorder's up-front subscriptions has the
+    reliability and durability a replay publishes with: matched at once, history included."""
+
+    def key(q: Any) -> tuple[Any, Any]:
+        return q.reliability, q.durability
+
+    replayer = Replayer(probe.node)
+    for msgtype in set(TOPIC_TYPES.values()):
+        ours = {key(graph._recording_qos([q])) for q in graph._expected_offers(msgtype)}
+        # The matcher's markers are latched, and so recorded and republished.
+        offered = replayer.qos(msgtype, latched=msgtype.endswith("/MarkerArray"))
+        assert key(offered) in ours, msgtype
+
+
+def test_a_replay_waiting_for_the_recorder_is_recorded_whole(
+    probe: Probe, tmp_path: Path, recorder: Callable[..., Recorder]
+) -> None:
+    """The session bag replayed into a recorder started just before it: with ``--wait-for
+    armourcam/recorder_ready`` every topic's count and the order of all messages are the bag's.
+    A viewer of the camera (standing in for a running graph) satisfies the replay's own wait for
+    subscribers, so only the handshake waits for the recorder."""
+    from sensor_msgs.msg import CameraInfo, CompressedImage
+
+    for cls, topic in (
+        (CompressedImage, "/camera/image_raw/compressed"),
+        (CameraInfo, "/camera/camera_info"),
+    ):
+        probe.node.create_subscription(cls, topic, lambda _: None, stream_qos("reliable", 100))
+    rec = recorder(tmp_path / "rec", "--inputs")
+    wait = ("--wait-for", graph.RECORDER_READY_TOPIC, "--wait-subscribers", "30")
+    out = armourcam("replay", str(SESSION), "--rate", "10", "--linger", "1", *wait)
+    assert out.returncode == 0, out.stderr
+    assert "no subscriber yet" not in out.stderr  # it did wait for the recorder
+    assert rec.wait_ready(0.0), rec.lines
+    counts = rec.stop()
+
+    def contents(bag: Path) -> tuple[dict[str, int], list[str]]:
+        with bagio.open_bag(bag) as b:
+            return {t: i.count for t, i in b.topics.items()}, [
+                m.topic for m in b.messages(deserialize=False)
+            ]
+
+    want_counts, want_order = contents(SESSION)
+    got_counts, got_order = contents(tmp_path / "rec")
+    assert got_counts == want_counts, counts
+    assert got_order == want_order  # logged at publication: hall events between their frames
+
+
+def test_a_publisher_appearing_after_ready_loses_no_frame(
+    probe: Probe, tmp_path: Path, recorder: Callable[..., Recorder]
+) -> None:
+    """A camera started after the recorder publishes at once (no wait for subscribers): once it
+    has discovered the recorder's subscription, already in the graph, every frame is recorded.
+    (A recorder subscribing only after discovering the publisher lost the first frames.)"""
+    from sensor_msgs.msg import Image
+
+    rec = recorder(tmp_path / "rec", "--inputs")
+    assert rec.wait_ready(), rec.lines
+    # Subscribed before any publisher exists: a publisher created now matches it at once.
+    assert probe.spin_until(lambda: probe.node.count_subscribers("/camera/image_raw") > 0, 10.0)
+    camera = probe.node.create_publisher(Image, "/camera/image_raw", stream_qos("reliable", 100))
+    n_frames = 30
+    for k in range(n_frames):
+        camera.publish(Image(height=4, width=6, encoding="mono8", step=6, data=bytes([k]) * 24))
+        probe.spin_for(0.02)
+    probe.spin_for(1.0)
+    counts = rec.stop()
+    assert f"/camera/image_raw: {n_frames}" in counts, counts
+    with bagio.open_bag(tmp_path / "rec") as b:
+        firsts = [bytes(m.message.data)[0] for m in b.messages(["/camera/image_raw"])]
+    assert firsts == list(range(n_frames))
+
+
+def test_latched_history_is_logged_when_it_was_published(
+    probe: Probe, tmp_path: Path, recorder: Callable[..., Recorder]
+) -> None:
+    """Hall events published (latched) a second before the recorder started are logged at their
+    publication time, not when the recorder received them, and in their order, before a live
+    event; each is written once although two subscriptions (transient-local and volatile)
+    deliver the live one."""
+    from std_msgs.msg import Bool, String
+
+    node = probe.node
+    run_id = node.create_publisher(String, "/hall/run_id", event_qos())
+    run_active = node.create_publisher(Bool, "/hall/run_active", event_qos())
+    published: list[tuple[int, int]] = []  # wall clock just before and after each publication
+
+    def publish(pub: Any, msg: Any) -> None:
+        before = time.time_ns()
+        pub.publish(msg)
+        published.append((before, time.time_ns()))
+
+    publish(run_id, String(data="wave-001"))
+    publish(run_active, Bool(data=True))
+    probe.spin_for(1.0)  # received at least a second later
+    t_start = time.time_ns()
+    rec = recorder(tmp_path / "rec", "hall/run_id", "hall/run_active")
+    assert rec.wait_ready(), rec.lines
+
+    def matched() -> bool:  # by both of the recorder's readers of each topic
+        return min(run_id.get_subscription_count(), run_active.get_subscription_count()) >= 2
+
+    assert probe.spin_until(matched, 10.0)  # slow discovery of a busy machine is not the point
+    publish(run_active, Bool(data=False))
+    probe.spin_for(1.0)
+    counts = rec.stop()
+    with bagio.open_bag(tmp_path / "rec") as b:
+        got = [(m.topic, m.message.data, m.timestamp_ns) for m in b.messages()]
+    assert [(topic, data) for topic, data, _ in got] == [
+        ("/hall/run_id", "wave-001"),
+        ("/hall/run_active", True),
+        ("/hall/run_active", False),
+    ], (counts, rec.lines)
+    for (_, _, t_ns), (before, after) in zip(got, published, strict=True):
+        assert before <= t_ns <= after
+    assert got[1][2] < t_start
+
+
+def test_default_topics_include_the_events_in_the_recorders_namespace(
+    probe: Probe, tmp_path: Path, recorder: Callable[..., Recorder]
+) -> None:
+    """Without topics the recording has the hall's run state and id and the baseline command
+    (what ``armourcam analyze`` needs), named as the matcher's relative defaults resolve in the
+    namespace (``/cell2/hall/run_id``), not another feed's ``/hall/run_id``."""
+    from std_msgs.msg import Bool, Empty, String
+
+    node = probe.node
+    run_id = node.create_publisher(String, "/cell2/hall/run_id", event_qos())
+    run_active = node.create_publisher(Bool, "/cell2/hall/run_active", event_qos())
+    other = node.create_publisher(String, "/hall/run_id", event_qos())
+    capture = node.create_publisher(
+        Empty, "/cell2/armourcam/capture_baseline", stream_qos("reliable", 10)
+    )
+    run_id.publish(String(data="wave-007"))
+    run_active.publish(Bool(data=True))
+    other.publish(String(data="not this cell"))
+    rec = recorder(tmp_path / "rec", "--ros-args", "-r", "__ns:=/cell2")
+    assert rec.wait_ready(), rec.lines
+    pubs = (run_id, run_active, capture)
+    assert probe.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs), 10.0)
+    capture.publish(Empty())
+    run_active.publish(Bool(data=False))
+    probe.spin_for(1.0)
+    counts = rec.stop()
+    with bagio.open_bag(tmp_path / "rec") as b:
+        topics = {t: i.count for t, i in b.topics.items()}
+    assert topics == {
+        "/cell2/hall/run_id": 1,
+        "/cell2/hall/run_active": 2,
+        "/cell2/armourcam/capture_baseline": 1,
+    }, counts

@@ -4,6 +4,11 @@
 own: a file that cannot be read (missing, empty, not an image, truncated) gets a one-line error
 and the others are still processed; the exit status is 1 when any file failed.
 
+Table output: one row per detection; its semi-axes are those of the outermost fitted circle,
+named in the ``circle`` column (``outer``, the printed outer circle, for both designs: the
+``ring`` design's pose circle, the ``dot`` design's coding-track arc, not its small pose dot;
+see :func:`outer_ellipse`). The JSON lists every fitted ellipse with its ``radius``.
+
 JSON output: ``{"images": [{"path", "error", "detections": [...]}]}`` with one record per
 detection built by :func:`detection_record` (extend that function to add fields, e.g. a pose).
 Pixel coordinates ``(u, v)``: pixel centres at integer coordinates (OpenCV's convention).
@@ -18,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from fiducial_detector import DetectorError, detect
+from fiducial_detector import DESIGNS, DetectorError, detect
 from fiducial_detector.detect import DECIMATE_FACTORS, SUBPIXEL_METHODS
 from fiducial_detector.types import Ellipse, FiducialDetection
 from pose_estimator import CalibrationError, CameraModel, FiducialPose, estimate
@@ -216,6 +221,28 @@ def detect_file(
     return {"path": path, "error": None, "detections": records}
 
 
+def outer_ellipse(record: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    """The outermost fitted ellipse of a detection record (:func:`detection_record`) and the name
+    of its printed circle, for the table's semi-axes column.
+
+    The same circle for both designs whenever it was fitted: the outer circle (radius 1.0, the
+    printed diameter), the ``ring`` design's pose circle and the ``dot`` design's coding-track
+    arc (its pose circle is the small central dot). Where only smaller circles were fitted the
+    largest is given, named ``dot`` (the central dot) or ``r=0.80`` (radius as a fraction of the
+    outer radius).
+    """
+    ellipse = max(record["ellipses"], key=lambda e: float(e["radius"]))
+    radius = float(ellipse["radius"])
+    design = DESIGNS.get(record["design"])
+    if abs(radius - 1.0) < 1e-6:
+        name = "outer"
+    elif design is not None and abs(radius - design.dot_radius) < 1e-6:
+        name = "dot"
+    else:
+        name = f"r={radius:.2f}"
+    return ellipse, name
+
+
 def _print_table(results: list[dict[str, Any]]) -> None:
     for res in results:
         if res["error"] is not None:
@@ -225,18 +252,18 @@ def _print_table(results: list[dict[str, Any]]) -> None:
         if not dets:
             continue
         posed = "position_mm" in dets[0]
-        head = "  code  design         u          v  ham  contrast  semi-axes (px)"
-        print(head + ("        x, y, z (mm)              sd x, y, z (mm)" if posed else ""))
+        head = "  code  design         u          v  ham  contrast  semi-axes (px)    circle"
+        print(head + ("      x, y, z (mm)              sd x, y, z (mm)" if posed else ""))
         for d in dets:
-            pose = d["ellipses"][0]
+            ellipse, circle = outer_ellipse(d)
             line = (
                 f"  {d['code']:>4}  {d['design']:>6}  {d['center_px'][0]:9.3f}  "
                 f"{d['center_px'][1]:9.3f}  {d['hamming']:>3}  {d['contrast']:8.3f}  "
-                f"{pose['semi_major']:6.2f} x {pose['semi_minor']:6.2f}"
+                f"{ellipse['semi_major']:6.2f} x {ellipse['semi_minor']:6.2f}  {circle:<6}"
             )
             if posed:
                 line += "  " + _triple(d["position_mm"], 8, 2) + "  " + _triple(d["sigma_mm"], 6, 3)
-            print(line)
+            print(line.rstrip())
 
 
 def _triple(values: list[float] | None, width: int, decimals: int) -> str:

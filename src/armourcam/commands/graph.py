@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import math
 import signal
-import sys
-import time
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +42,22 @@ def register(subparsers: Any) -> None:
         type=Path,
         help="separate processes: write each node's output to DIR/<node>.log",
     )
+    p.add_argument(
+        "--respawn",
+        action="store_true",
+        help=(
+            "separate processes: restart a node that fails (non-zero status or killed by a "
+            "signal) instead of stopping the graph; a node that needs more than "
+            "5 restarts within 60 s is given up on and the graph stops. Without it (as in ROS "
+            "launch) any node's exit stops the graph"
+        ),
+    )
+    p.add_argument(
+        "--respawn-delay",
+        type=float,
+        metavar="SECONDS",
+        help="with --respawn: wait this long before restarting a node (default 2)",
+    )
     add_ros_args(
         p, "the rest of the command line goes to every node's rclpy (remaps, -p, --log-level)"
     )
@@ -55,7 +71,10 @@ def run(args: argparse.Namespace) -> int:
     if args.params is not None and not args.params.is_file():
         raise FileNotFoundError(f"params file {args.params} does not exist")
     params = str(args.params) if args.params else None
+    delay = _respawn_delay(args)
     if args.one_process:
+        if args.respawn:
+            raise ValueError("--respawn restarts node processes: not with --one-process")
         return graph.run_one_process(
             params, multithreaded=not args.single_threaded, ros_args=args.ros_args
         )
@@ -68,17 +87,35 @@ def run(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGHUP, _stop)  # a closed terminal stops the graph like Ctrl-C
+
+    def _respawn(name: str) -> subprocess.Popen[bytes]:
+        new = graph.launch_processes(
+            params, nodes=(name,), log_dir=args.log_dir, ros_args=args.ros_args
+        )
+        return new[name]
+
     status = 0
     try:
-        while not stopping:
-            for name, proc in procs.items():
-                if proc.poll() is not None:
-                    print(f"armourcam graph: {name} exited with {proc.returncode}", file=sys.stderr)
-                    stopping = True
-                    status = 1
-            time.sleep(0.2)
+        status = graph.supervise_processes(
+            procs,
+            lambda: stopping,
+            respawn=_respawn if args.respawn else None,
+            respawn_delay_s=delay,
+        )
     except KeyboardInterrupt:
         pass
     finally:
-        graph.stop_processes(procs.values())
+        graph.stop_processes(procs.values())  # kept current: respawned processes included
     return status
+
+
+def _respawn_delay(args: argparse.Namespace) -> float:
+    """``--respawn-delay`` checked (seconds, default 2)."""
+    if args.respawn_delay is None:
+        return 2.0
+    if not args.respawn:
+        raise ValueError("--respawn-delay needs --respawn")
+    delay = float(args.respawn_delay)
+    if not (delay >= 0 and math.isfinite(delay)):
+        raise ValueError(f"--respawn-delay must be >= 0 s, got {args.respawn_delay}")
+    return delay
