@@ -12,7 +12,9 @@ tied to the truth fiducial whose projected centre is nearest.
 Methods, each followed by the same unit grouping, unit motion and damage count:
 
 - ``armourcam``: :func:`displacement_matcher.units.match_units` (exact global matching, then
-  unit-aware re-matching);
+  unit-aware re-matching) with the field's unit template (positions and normals);
+- ``auto``: the same without a unit map: units grouped by the distances between codes learned
+  from the baseline (:func:`displacement_matcher.units.learn_pair_distances`);
 - ``global``: :func:`displacement_matcher.match` alone (one exact global matching);
 - ``nearest``: each baseline fiducial takes the nearest same-code current one within the gate
   (not one-to-one);
@@ -185,9 +187,11 @@ def evaluate(
     ``band_dn`` Dn of the threshold are listed apart (``near_units``) from the band's false
     positives and negatives (``fp_band``, ``fn_band``).
     """
-    umap = field.geometry.unit_map()
+    # ``auto``: armourcam without a unit map (units grouped by the code distances learned from
+    # the baseline, :func:`displacement_matcher.units.learn_pair_distances`).
+    umap = None if method == "auto" else field.geometry.unit_map()
     t0 = time.perf_counter()
-    if method == "armourcam":
+    if method in ("armourcam", "auto"):
         an = match_units(base, cur, unit_map=umap, gate_mm=GATE_MM)
         result, units = an.result, an.units
     else:
@@ -406,7 +410,7 @@ def main() -> None:
                 f"{field.after.visible.sum()} ({field.after.observable.sum()}); before: "
                 + pose_quality(field.before, base, np.asarray(bid))
             )
-        for method in ("armourcam", "global", "nearest", "icp"):
+        for method in ("armourcam", "auto", "global", "nearest", "icp"):
             r = evaluate(field, base, cur, np.asarray(bid), np.asarray(cid), method, args.band_dn)
             rms = "/".join(f"{v:.2f}" for v in r["rms"])
             med = "/".join(f"{v:.2f}" for v in r["med"])

@@ -204,3 +204,20 @@ def test_analyze_command_fails_when_every_frame_is_dropped(tmp_path: Path, capsy
     assert "run wave-001: settled=False: not measured: " in captured.out
     dropped = [s for s in captured.err.splitlines() if "dropped" in s]
     assert len(dropped) == 17 and "calibration is for 1200x800" in dropped[0]
+
+
+def test_demo_draws_each_run_on_the_scene_after_it() -> None:
+    """The demo's overlays: run k is drawn on the last frame before run k + 1 starts (the
+    bundled bag's frames between wave-001's stop and wave-002's start), not every run on the
+    bag's last frame."""
+    from armourcam.commands.demo import _after_images
+
+    afters = _after_images(BAG)
+    assert len(afters) == 2
+    with bagio.open_bag(BAG) as b:
+        start2 = [m.timestamp_ns for m in b.messages(["/hall/run_active"]) if m.message.data][1]
+        frames = [(f.timestamp_ns, f.image) for f in b.frames() if f.image is not None]
+    first = [img for t, img in frames if t < start2][-1]
+    assert np.array_equal(afters[0], first)
+    assert np.array_equal(afters[1], frames[-1][1])
+    assert not np.array_equal(afters[0], afters[1])

@@ -60,15 +60,20 @@ def _params(out: Path, data_dir: Path, truth: dict[str, Any] | None, compressed:
     return path
 
 
-def _last_image(bag: Path) -> Any:
+def _after_images(bag: Path) -> list[Any]:
+    """The scene after each wave run: the last frame before the next run starts (the bag's
+    last frame for the last run), one per run in order, for the runs' overlays."""
     from armourcam import bagio
 
-    image = None
     with bagio.open_bag(bag) as b:
-        for fr in b.frames():
-            if fr.image is not None:
-                image = fr.image
-    return image
+        starts = [m.timestamp_ns for m in b.messages(["/hall/run_active"]) if m.message.data]
+        frames = [(f.timestamp_ns, f.image) for f in b.frames() if f.image is not None]
+    ends = [*starts[1:], None]
+    out = []
+    for end in ends:
+        before = [img for t, img in frames if end is None or t < end]
+        out.append(before[-1] if before else None)
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -119,8 +124,11 @@ def run(args: argparse.Namespace) -> int:
         runs = _wait_runs(data_dir, n_runs, args.timeout - (time.monotonic() - t0), procs)
     finally:
         graph.stop_processes(procs.values())
-    after = _last_image(bag)
-    written = [_write_run_files(out, r, camera, after) for r in runs]
+    afters = _after_images(bag)
+    written = [
+        _write_run_files(out, r, camera, afters[k] if k < len(afters) else None)
+        for k, r in enumerate(runs)
+    ]
     _print_table(runs, truth)
     print(f"\nreports: {', '.join(str(w) for w in written)}")
     if len(runs) < n_runs:
