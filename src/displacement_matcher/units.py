@@ -6,9 +6,10 @@ codes), optionally with the fiducials' positions and face normals on the unit. W
 with a template, units are found automatically in the baseline (and in the current state):
 fiducials of different codes are grouped by proximity, never two of one code in a unit, and when
 the template gives positions (and normals) only pairs whose distance (and the rigid invariants of
-the two oriented fiducials) agree with the unit's own geometry are grouped. Every normal check
-allows for the circle pose's two-fold ambiguity (:func:`mirror_normals`): the pose estimator puts
-a sizeable share of normals on the wrong branch.
+the two oriented fiducials) agree with the unit's own geometry are grouped; without positions, the
+distances between codes are learned from the baseline (:func:`learn_pair_distances`). Every
+normal check allows for the circle pose's two-fold ambiguity (:func:`mirror_normals`): the pose
+estimator puts a sizeable share of normals on the wrong branch.
 
 Unit map YAML (lengths in mm, positions in the unit's own frame)::
 
@@ -28,9 +29,9 @@ Wahba's problem over normals and inter-fiducial vectors) when at least three of 
 two with normals, are matched consistently; a translation otherwise. Matches are screened first:
 same-code matches are preferred to cross-code ones, and only the largest subset that one rigid
 motion explains is used (among equal sizes the smallest motion: most units do not move). With a
-template the displacement is reported at the unit's own origin, located by fitting the template
-to the unit's baseline fiducials. :func:`displacement_matcher.refine.match_units` re-matches
-knowing how each unit moved.
+template, or an explicit unit's own positions, the displacement is reported at the unit's origin,
+located by fitting those positions to the unit's baseline fiducials.
+:func:`displacement_matcher.refine.match_units` re-matches knowing how each unit moved.
 Camera frame, millimetres.
 """
 
@@ -600,6 +601,41 @@ def _pair_normals(
     return out_b, out_a
 
 
+def _branches_by_points(
+    before: NDArray[np.float64],
+    after: NDArray[np.float64],
+    sigma: NDArray[np.float64],
+    nb: NDArray[np.float64],
+    na: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Each pair's normal branches re-chosen by the rotation its points alone fix.
+
+    Three or more matched points not on a line fix the unit's rotation without normals. The
+    smallest-turn choice of :func:`_pair_normals` picks the wrong branches of a unit that turned
+    far (a 30 deg rock: each mirror lies a couple of degrees nearer than the truth), and the
+    wrong normals then reverse the fitted turn. Where the points fit one rigid motion (RMS
+    within 1 mm), each pair takes the branches that motion carries into each other; otherwise
+    (a stranger among them, too few or collinear points) the choice stands.
+    """
+    k = len(before)
+    if k < 3 or np.linalg.matrix_rank(before - before.mean(axis=0), 1e-6) < 2:
+        return nb, na
+    w = 1.0 / np.maximum(np.sum(sigma**2, axis=1), 1e-6)
+    R, t = rigid_fit(before, after, w)
+    if np.sqrt(np.mean(np.sum((before @ R.T + t - after) ** 2, axis=1))) > 1.0:
+        return nb, na
+    cand_b = (nb, mirror_normals(before, nb))
+    cand_a = (na, mirror_normals(after, na))
+    best = np.full(k, -np.inf)
+    out_b, out_a = nb.copy(), na.copy()
+    for xb, xa in itertools.product(cand_b, cand_a):
+        dot = np.einsum("ki,ki->k", xb @ R.T, xa)
+        better = dot > best + 1e-12
+        best = np.where(better, dot, best)
+        out_b[better], out_a[better] = xb[better], xa[better]
+    return out_b, out_a
+
+
 def template_pose(
     poses: Sequence[FiducialPose], template: UnitSpec
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
@@ -642,12 +678,18 @@ def _centre_of(
     unit_map: UnitMap | None,
     cache: dict[str, NDArray[np.float64] | None] | None,
 ) -> NDArray[np.float64] | None:
-    """The unit's template-located origin (cached by unit id when a cache is given)."""
-    if unit_map is None or unit_map.template is None or not ix:
+    """The unit's origin located by its template, or by its own positions in an explicit map
+    (cached by unit id when a cache is given): its motion is reported there."""
+    if unit_map is None or not ix:
+        return None
+    spec = unit_map.template
+    if spec is None:
+        spec = next((u for u in unit_map.units if u.unit == name and u.positions_mm), None)
+    if spec is None:
         return None
     if cache is not None and name in cache:
         return cache[name]
-    fit = template_pose([base[i] for i in ix], unit_map.template)
+    fit = template_pose([base[i] for i in ix], spec)
     centre = None if fit is None else fit[1]
     if cache is not None:
         cache[name] = centre
@@ -1225,6 +1267,8 @@ def _motion_of_unit(
     nb_all, na_all = _pair_normals(
         [base[d.baseline_index] for d in use], [cur[d.current_index] for d in use], template
     )
+    if nb_all is not None and na_all is not None:
+        nb_all, na_all = _branches_by_points(before, after, sig, nb_all, na_all)
     if nb_all is not None and na_all is not None:
         turn = np.arccos(np.clip(np.einsum("ki,ki->k", nb_all, na_all), -1.0, 1.0))
     else:

@@ -264,3 +264,44 @@ def test_a_mapped_unit_thrown_far_is_displaced_and_the_gate_follows_dn() -> None
     assert small.result.params.gate_mm == 50.0 and large.result.params.gate_mm == 108.0
     assert large.summary.displaced_units == 1
     assert small.summary.displaced_units == 0
+
+
+def test_an_explicit_unit_with_positions_moves_at_its_own_origin() -> None:
+    """An explicit unit map that gives a unit's fiducial positions: its motion is reported at
+    the unit's origin (where the positions are measured from), as a template's is, not at its
+    fiducials' centroid, which a turn of the unit moves differently. The unit rocks 30 deg:
+    its three points fix the turn, and each normal's branch is the one that turn carries it to
+    (the smallest-turn choice took every mirror, a couple of degrees nearer, and reversed the
+    fitted turn)."""
+    local = {
+        1: np.array([20.0, 0.0, 0.0]),
+        2: np.array([0.0, 20.0, 0.0]),
+        3: np.array([20.0, 20.0, 5.0]),
+    }
+    umap = parse_unit_map(
+        {
+            "units": {
+                "A": {"codes": [1, 2, 3], "positions_mm": {c: p.tolist() for c, p in local.items()}}
+            }
+        }
+    )
+    origin = np.array([10.0, -5.0, 600.0])
+    turn = _rot([1.0, 0.2, 0.0], 30.0)  # rocking: the faces turn with it
+    shift = np.array([6.0, -2.0, 1.0])
+
+    def poses(R: np.ndarray, t: np.ndarray) -> list[FiducialPose]:
+        cov = np.diag([0.01, 0.01, 0.04])
+        return [
+            FiducialPose(c, R @ p + t, R @ np.array([0.0, 0.0, -1.0]), cov)
+            for c, p in local.items()
+        ]
+
+    an = match_units(
+        poses(np.eye(3), origin), poses(turn, origin + shift), unit_map=umap, gate_mm=50.0
+    )
+    (unit,) = an.units
+    assert unit.method == "rigid" and unit.n_matched == 3
+    assert unit.rotation_deg is not None and abs(unit.rotation_deg - 30.0) < 1e-6
+    np.testing.assert_allclose(unit.rotation, turn, atol=1e-9)
+    np.testing.assert_allclose(unit.reference_before_mm, origin, atol=1e-6)
+    np.testing.assert_allclose(unit.translation_mm, shift, atol=1e-6)
