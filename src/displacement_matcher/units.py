@@ -591,12 +591,22 @@ def _pair_normals(
     pa = np.array([p.position_mm for p in after], dtype=np.float64)
     cand_b = (rb,) if rb is not None else (nb, mirror_normals(pb, nb))
     cand_a = (ra,) if ra is not None else (na, mirror_normals(pa, na))
-    best_dot = np.full(len(before), -np.inf)
-    out_b, out_a = nb.copy(), na.copy()
+    return _closest_branches(cand_b, cand_a, np.eye(3))
+
+
+def _closest_branches(
+    cand_b: Sequence[NDArray[np.float64]],
+    cand_a: Sequence[NDArray[np.float64]],
+    rotation: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per pair, the candidate normals before and after that ``rotation`` carries nearest into
+    each other (the first such combination on a tie)."""
+    best = np.full(len(cand_b[0]), -np.inf)
+    out_b, out_a = cand_b[0].copy(), cand_a[0].copy()
     for xb, xa in itertools.product(cand_b, cand_a):
-        dot = np.einsum("ki,ki->k", xb, xa)
-        better = dot > best_dot
-        best_dot = np.where(better, dot, best_dot)
+        dot = np.einsum("ki,ki->k", xb @ rotation.T, xa)
+        better = dot > best
+        best = np.where(better, dot, best)
         out_b[better], out_a[better] = xb[better], xa[better]
     return out_b, out_a
 
@@ -624,16 +634,7 @@ def _branches_by_points(
     R, t = rigid_fit(before, after, w)
     if np.sqrt(np.mean(np.sum((before @ R.T + t - after) ** 2, axis=1))) > 1.0:
         return nb, na
-    cand_b = (nb, mirror_normals(before, nb))
-    cand_a = (na, mirror_normals(after, na))
-    best = np.full(k, -np.inf)
-    out_b, out_a = nb.copy(), na.copy()
-    for xb, xa in itertools.product(cand_b, cand_a):
-        dot = np.einsum("ki,ki->k", xb @ R.T, xa)
-        better = dot > best + 1e-12
-        best = np.where(better, dot, best)
-        out_b[better], out_a[better] = xb[better], xa[better]
-    return out_b, out_a
+    return _closest_branches((nb, mirror_normals(before, nb)), (na, mirror_normals(after, na)), R)
 
 
 def template_pose(
