@@ -88,6 +88,15 @@ def consistent_subset(
     err = np.abs(db - da)
     t = np.where(np.isfinite(turn), turn, np.pi)
     theta = np.minimum(np.maximum(t[:, None], t[None, :]) + np.radians(15.0), np.pi)
+    if normals_before is not None:
+        # Two faces that point alike (fiducials on one flat face of a cube) do not see a spin
+        # about their normal: their normals' turn bounds only the tilt, so such a pair's
+        # displacements may differ by any spin (its distance must still be kept).
+        nb = normals_before / np.maximum(
+            np.linalg.norm(normals_before, axis=1, keepdims=True), 1e-12
+        )
+        parallel = nb @ nb.T >= np.cos(np.radians(15.0))
+        theta = np.where(parallel, np.pi, theta)
     ok = (err <= tol) & (ddiff <= 2.0 * np.sin(theta / 2.0) * db + tol)
     w = 1.0 / np.maximum(np.sum(sigma**2, axis=1), 1e-6)
 

@@ -305,3 +305,32 @@ def test_an_explicit_unit_with_positions_moves_at_its_own_origin() -> None:
     np.testing.assert_allclose(unit.rotation, turn, atol=1e-9)
     np.testing.assert_allclose(unit.reference_before_mm, origin, atol=1e-6)
     np.testing.assert_allclose(unit.translation_mm, shift, atol=1e-6)
+
+
+def test_a_cube_spinning_about_its_face_normal_is_fitted_rigidly() -> None:
+    """Three fiducials on one flat face (a cube's): their normals do not turn when the unit
+    spins about them, so the turn of the normals cannot bound that spin. A 40 deg spin in place
+    is fitted as one rigid motion of all three, not left to a translation of one."""
+    local = {
+        1: np.array([-8.0, -6.0, 10.0]),
+        2: np.array([8.0, -6.0, 10.0]),
+        3: np.array([0.0, 8.0, 10.0]),
+    }
+    spec = {c: p.tolist() for c, p in local.items()}
+    umap = parse_unit_map({"units": {"C": {"codes": [1, 2, 3], "positions_mm": spec}}})
+    origin = np.array([-20.0, 10.0, 700.0])
+    spin = _rot([0.0, 0.0, 1.0], 40.0)
+    shift = np.array([2.0, 1.0, 0.0])
+    face = np.array([0.0, 0.0, -1.0])  # the face looks at the camera
+
+    def poses(R: np.ndarray, t: np.ndarray) -> list[FiducialPose]:
+        cov = np.diag([0.01, 0.01, 0.09])
+        return [FiducialPose(c, R @ p + t, R @ face, cov) for c, p in local.items()]
+
+    an = match_units(
+        poses(np.eye(3), origin), poses(spin, origin + shift), unit_map=umap, gate_mm=50.0
+    )
+    (unit,) = an.units
+    assert unit.method == "rigid" and unit.n_matched == 3, (unit.method, unit.n_matched)
+    assert unit.rotation_deg is not None and abs(unit.rotation_deg - 40.0) < 1e-6
+    np.testing.assert_allclose(unit.translation_mm, shift, atol=1e-6)
