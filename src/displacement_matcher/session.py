@@ -876,10 +876,13 @@ class Session:
         run_id: str,
     ) -> Comparison:
         try:
-            return self._compare(before, after)
+            comparison = self._compare(before, after)
         except ValueError as err:
             events.append(Notice("error", f"run {run_id}: comparison failed: {err}"))
             return Comparison({"fiducials": [], "units": [], "summary": {}, "error": str(err)}, ())
+        for message in comparison.report.get("warnings", ()):
+            events.append(Notice("warn", f"run {run_id}: {message}"))
+        return comparison
 
     # ------------------------------------------------------------------ persistence
 

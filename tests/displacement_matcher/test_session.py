@@ -892,3 +892,27 @@ def test_the_frames_frame_id_is_kept_in_the_data_dir(
     del doc["frame_id"]
     state.write_text(json.dumps(doc))
     assert make(tmp_path).frame_id == ""
+
+
+def test_a_camera_moved_during_a_run_is_warned(rng: np.random.Generator) -> None:
+    """The camera bumped during the wave run (every fiducial 1.5 mm along x after it): the run's
+    report carries the warning and the session says so, naming the run; a run with units
+    moving but the camera still does not."""
+    truth0 = scene(80)
+    s = make(baseline_frames=3, settle_frames=3)
+    feed(s, [frame(truth0, rng) for _ in range(3)], 0.0)
+    s.set_run_active(True, 1.0)
+    s.set_run_active(False, 2.0)
+    events = feed(s, [frame(moved(truth0, [3], [12.0, 0, 0]), rng) for _ in range(3)], 2.1)
+    (done,) = of_type(events, RunCompleted)
+    assert done.run.report["warnings"] == []
+    assert not [e for e in of_type(events, Notice) if "camera" in e.text]
+    s.set_run_active(True, 5.0)
+    s.set_run_active(False, 6.0)
+    bumped = moved(truth0, [3], [12.0, 0, 0]) + np.array([1.5, 0.0, 0.0])
+    events = feed(s, [frame(bumped, rng) for _ in range(3)], 6.1)
+    (done,) = of_type(events, RunCompleted)
+    (warning,) = [w for w in done.run.report["warnings"] if w.startswith("camera moved")]
+    assert "re-capture the baseline" in warning
+    notices = [e for e in of_type(events, Notice) if e.level == "warn" and "camera moved" in e.text]
+    assert notices and notices[0].text.startswith(f"run {done.run.run_id}: camera moved")

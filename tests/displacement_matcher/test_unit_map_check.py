@@ -103,3 +103,28 @@ def test_the_unit_maps_positions_catch_a_code_within_the_span() -> None:
     assert check_unit_map(base[:3], umap, limit_mm=41.0, skip={2}) == ()
     template = parse_unit_map({"template": {"codes": [1, 2, 3]}})
     assert check_unit_map(base, template, limit_mm=41.0) == ()
+
+
+def test_a_camera_moved_between_the_states_is_named() -> None:
+    """A camera bumped during the wave run moves every fiducial alike: the comparison says so
+    (with the shift), while a field whose units moved with the camera still gives no warning.
+    Without the check a 1 mm shift passed silently into every displacement."""
+    import cv2
+
+    field = make_field(120, seed=4)
+    rng = np.random.default_rng(4)
+    before, after = field.before.poses(rng), field.after.poses(rng)
+    limits = thresholds(field.geometry.dn_mm)
+    assert compare_poses(before, after, limits).camera_motion is None
+    turn, _ = cv2.Rodrigues(np.array([0.0, np.radians(0.05), 0.0]))
+    shift = np.array([1.0, -0.5, 0.0])
+    bumped = [
+        FiducialPose(
+            p.code, turn @ p.position_mm + shift, turn @ p.normal, turn @ p.covariance_mm2 @ turn.T
+        )
+        for p in after
+    ]
+    cmp = compare_poses(before, bumped, limits)
+    assert cmp.camera_motion is not None
+    assert cmp.warnings and cmp.warnings[0].startswith("camera moved since the baseline?")
+    assert "re-capture the baseline" in cmp.warnings[0]
