@@ -141,7 +141,7 @@ def camera_motion(
     """The camera's motion between the baseline and the current state, when the scene says so.
 
     Most units do not move in a wave run, so a camera bumped between the two states shows as one
-    rigid motion shared by most fiducials (:func:`pose_estimator.fusion.fuse_frames`, the check
+    rigid motion shared by most fiducials (:func:`pose_estimator.fusion.frame_agreement`, the check
     of one state's images, applied to the two states: its registration leaves the moved units
     out as outliers, and a motion that leaves more than :data:`CAMERA_MOTION_MAX_OUTLIERS` of
     the shared fiducials out is none). On the dolos fields, a 1 mm shift or a 0.1 deg turn of
@@ -154,11 +154,11 @@ def camera_motion(
         The current state's registration onto the baseline when it is ``moved`` (None
         otherwise, and when either state is empty).
     """
-    from pose_estimator.fusion import fuse_frames
+    from pose_estimator.fusion import frame_agreement
 
     if not baseline or not current:
         return None
-    agreement = fuse_frames([list(baseline), list(current)]).frames[1]
+    agreement = frame_agreement(current, baseline)
     # A camera motion carries most fiducials (the still units); a "motion" that leaves most of
     # them outliers is no rigid motion of the scene (the bundled session: 48 of 48 outliers,
     # chi-square 1e6, after a run that moved or rocked a third of its 24 units).
@@ -187,9 +187,8 @@ def poses_from_images(
 ) -> list[FiducialPose]:
     """Detect, estimate (refined by :func:`pose_estimator.image_fit.refine_from_image` when
     ``image_fit``) and, for several images of one static state, fuse fiducial poses
-    (``design``, ``subpixel``, ``decimate``: :func:`fiducial_detector.detect`'s).
-
-    The images are fused whether they agree or not; :func:`state_from_images` says how they do.
+    (``design``, ``subpixel``, ``decimate``: :func:`fiducial_detector.detect`'s): the poses of
+    :func:`state_from_images`, which also says how the images agree.
 
     Raises
     ------
@@ -197,9 +196,7 @@ def poses_from_images(
         (``DetectorError``, ``PoseError``, ``CalibrationError``) for an image that does not fit
         the camera or cannot be read as an image.
     """
-    from pose_estimator.fusion import fuse
-
-    frames = _frames_from_images(
+    state = state_from_images(
         images,
         camera,
         diameter_mm,
@@ -208,9 +205,7 @@ def poses_from_images(
         image_fit=image_fit,
         decimate=decimate,
     )
-    if len(frames) == 1:
-        return list(frames[0])
-    return list(fuse(frames))
+    return list(state.poses)
 
 
 def state_from_images(

@@ -143,17 +143,17 @@ def match_units(
     explicit = unit_map is not None and bool(unit_map.units)
     # Without template positions, the distances between a unit's codes are learned from the
     # baseline, for the baseline's and the current state's grouping alike.
-    learned = (
+    learned: dict[tuple[int, int], float] = (
         learn_pair_distances(result.baseline, span)
         if not explicit and not (template is not None and template.positions_mm)
-        else None
+        else {}
     )
     groups = assign_units(
         result,
         unit_map=unit_map,
         span_mm=span_mm,
         rigid_tol_mm=rigid_tol_mm,
-        pair_distances=learned or {},
+        pair_distances=learned,
     )
     kw: dict[str, Any] = {
         "unit_map": unit_map,

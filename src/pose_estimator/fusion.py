@@ -422,21 +422,16 @@ def fuse_frames(
     lists = [list(f) for f in frames]
     n = len(lists)
     if n == 1:
-        return Fusion(tuple(lists[0]), (_agreeing(0, len(lists[0])),), (0,), (0,))
+        return Fusion(tuple(lists[0]), (_agreement(0, "agrees", (), len(lists[0]), 0),), (0,), (0,))
     fuse_kw = {"gate_mm": gate_mm, "min_fraction": min_fraction, "gate": gate}
+    judge = _Criteria(search_mm, gate_mm, gate, moved_mm, warn_mm, min_shared, outlier_fraction)
     sets = [_PoseArrays.of(f) for f in lists]
-
-    def register(a: _PoseArrays, b: _PoseArrays) -> _Registration | None:
-        return _register(a, b, search_mm=search_mm, gate_mm=gate_mm, gate=gate)
-
-    def shares_enough(reg: _Registration | None, a: int, b: int) -> bool:
-        return reg is not None and reg.n_shared >= max(3.0, min_shared * min(a, b))
 
     # Which frames see the scene from one place.
     near = np.eye(n, dtype=bool)
     for f, g in itertools.combinations(range(n), 2):
-        reg = register(sets[f], sets[g])
-        if shares_enough(reg, len(lists[f]), len(lists[g])):
+        reg = judge.register(sets[f], sets[g])
+        if judge.shares_enough(reg, len(lists[f]), len(lists[g])):
             assert reg is not None
             near[f, g] = near[g, f] = reg.motion_mm < moved_mm or not reg.significant
     seen = [f for f in range(n) if lists[f]] or list(range(n))
@@ -448,26 +443,14 @@ def fuse_frames(
     for f in range(n):
         others = tuple(g for g in consensus if g != f)
         if not others:
-            agreements.append(_agreeing(f, len(lists[f])))
+            agreements.append(_agreement(f, "agrees", (), len(lists[f]), 0))
             continue
         ref = (
             whole
             if f not in consensus
             else _PoseArrays.of(fuse([lists[g] for g in others], **fuse_kw))
         )
-        reg = register(sets[f], ref)
-        verdict: Verdict = "agrees"
-        if not lists[f]:
-            verdict = "disagrees" if len(ref) else "agrees"
-        elif reg is None or not shares_enough(reg, len(lists[f]), len(ref)):
-            verdict = "unmatched"
-        elif reg.significant and reg.motion_mm >= moved_mm:
-            verdict = "moved"
-        elif (reg.significant and reg.motion_mm >= warn_mm) or reg.n_outliers > max(
-            2.0, outlier_fraction * reg.n_shared
-        ):
-            verdict = "disagrees"
-        agreements.append(_agreement(f, verdict, others, len(lists[f]), len(ref), reg))
+        agreements.append(judge(f, sets[f], len(lists[f]), ref, others))
 
     used = list(range(n))
     aligned: tuple[int, ...] = ()
@@ -484,6 +467,72 @@ def fuse_frames(
     return Fusion(
         tuple(fuse(inputs, **fuse_kw)), tuple(agreements), consensus, tuple(used), aligned
     )
+
+
+def frame_agreement(
+    frame: Sequence[FiducialPose],
+    reference: Sequence[FiducialPose],
+    *,
+    search_mm: float = 15.0,
+    gate_mm: float = 3.0,
+    gate: float = CHI2_3_999,
+    moved_mm: float = 0.5,
+    warn_mm: float = 0.2,
+    min_shared: float = 0.5,
+    outlier_fraction: float = 0.1,
+) -> FrameAgreement:
+    """How one pose set compares with a reference set of the same scene, as :func:`fuse_frames`
+    judges each frame (the same parameters): ``frame`` is frame 1, ``reference`` frame 0.
+
+    Without fusing anything: the check of a camera that moved between two states of a scene
+    most of which stayed still (:func:`displacement_matcher.compare.camera_motion`).
+    """
+    judge = _Criteria(search_mm, gate_mm, gate, moved_mm, warn_mm, min_shared, outlier_fraction)
+    poses = list(frame)
+    return judge(1, _PoseArrays.of(poses), len(poses), _PoseArrays.of(reference), (0,))
+
+
+@dataclass(frozen=True, slots=True)
+class _Criteria:
+    """The registration and the verdict rules of :func:`fuse_frames` (its parameters)."""
+
+    search_mm: float
+    gate_mm: float
+    gate: float
+    moved_mm: float
+    warn_mm: float
+    min_shared: float
+    outlier_fraction: float
+
+    def register(self, a: _PoseArrays, b: _PoseArrays) -> _Registration | None:
+        return _register(a, b, search_mm=self.search_mm, gate_mm=self.gate_mm, gate=self.gate)
+
+    def shares_enough(self, reg: _Registration | None, a: int, b: int) -> bool:
+        return reg is not None and reg.n_shared >= max(3.0, self.min_shared * min(a, b))
+
+    def __call__(
+        self,
+        f: int,
+        frame: _PoseArrays,
+        n_poses: int,
+        ref: _PoseArrays,
+        others: tuple[int, ...],
+    ) -> FrameAgreement:
+        """Frame ``f`` (``n_poses`` poses, ``frame`` their finite ones) against ``ref``, the
+        fusion of frames ``others``."""
+        reg = self.register(frame, ref)
+        verdict: Verdict = "agrees"
+        if not n_poses:
+            verdict = "disagrees" if len(ref) else "agrees"
+        elif reg is None or not self.shares_enough(reg, n_poses, len(ref)):
+            verdict = "unmatched"
+        elif reg.significant and reg.motion_mm >= self.moved_mm:
+            verdict = "moved"
+        elif (reg.significant and reg.motion_mm >= self.warn_mm) or reg.n_outliers > max(
+            2.0, self.outlier_fraction * reg.n_shared
+        ):
+            verdict = "disagrees"
+        return _agreement(f, verdict, others, n_poses, len(ref), reg)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -527,20 +576,16 @@ class _Registration:
         return self.wald > (CHI2_6_999 if self.dof == 6 else CHI2_3_999)
 
 
-def _agreeing(frame: int, n_poses: int) -> FrameAgreement:
-    """The agreement of a frame compared with nothing (a lone frame)."""
-    z = np.zeros(3)
-    return FrameAgreement(frame, "agrees", (), n_poses, 0, 0, 0.0, 0.0, 6, 0.0, 0, np.eye(3), z, z)
-
-
 def _agreement(
     frame: int,
     verdict: Verdict,
     reference: tuple[int, ...],
     n_poses: int,
     n_reference: int,
-    reg: _Registration | None,
+    reg: _Registration | None = None,
 ) -> FrameAgreement:
+    """The agreement of a frame with its registration (none: compared with nothing, or
+    nothing paired)."""
     if reg is None:
         z = np.zeros(3)
         return FrameAgreement(

@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the comparison, write the report, print the summary or the JSON."""
     from displacement_matcher.compare import compare_poses, state_from_images
     from displacement_matcher.damage import thresholds
-    from displacement_matcher.report import report_dict, write_report
+    from displacement_matcher.report import report_dict, write_report_files
     from displacement_matcher.units import load_unit_map
     from pose_estimator.camera import CameraModel
 
@@ -213,19 +213,11 @@ def run(args: argparse.Namespace) -> int:
         },
         "warnings": [*warnings, *cmp.warnings],
     }
-    write_report(
-        args.out,
-        cmp.result,
-        cmp.units,
-        cmp.summary,
-        camera=camera,
-        after_image=after_imgs[states[1].consensus[0]],
-        unassigned=cmp.unassigned,
-        extra=extra,
-    )
+    # One report mapping for the files and for --json.
+    rep = report_dict(cmp.result, cmp.units, cmp.summary, unassigned=cmp.unassigned)
+    rep.update(extra)
+    write_report_files(args.out, rep, camera=camera, after_image=after_imgs[states[1].consensus[0]])
     if args.json:
-        rep = report_dict(cmp.result, cmp.units, cmp.summary, unassigned=cmp.unassigned)
-        rep.update(extra)
         json.dump(rep, sys.stdout, indent=1)
         sys.stdout.write("\n")
     else:
