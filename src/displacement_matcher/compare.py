@@ -231,33 +231,9 @@ def state_from_images(
     ValueError
         As :func:`poses_from_images`.
     """
-    from pose_estimator.fusion import fuse_frames
-
-    frames = _frames_from_images(
-        images,
-        camera,
-        diameter_mm,
-        design=design,
-        subpixel=subpixel,
-        image_fit=image_fit,
-        decimate=decimate,
-    )
-    return fuse_frames(frames, align=align)
-
-
-def _frames_from_images(
-    images: Sequence[NDArray[np.generic]],
-    camera: CameraModel,
-    diameter_mm: float,
-    *,
-    design: str,
-    subpixel: str,
-    image_fit: bool,
-    decimate: int,
-) -> list[list[FiducialPose]]:
-    """The poses of each image (see :func:`poses_from_images`)."""
     from fiducial_detector.detect import detect
     from pose_estimator.estimate import estimate
+    from pose_estimator.fusion import fuse_frames
     from pose_estimator.image_fit import refine_from_image
 
     frames = []
@@ -274,7 +250,7 @@ def _frames_from_images(
         if image_fit:
             poses = refine_from_image(image, poses, camera, diameter_mm)
         frames.append(list(poses))
-    return frames
+    return fuse_frames(frames, align=align)
 
 
 def compare_poses(
