@@ -970,6 +970,23 @@ class Replayer:
             self._pubs[topic] = pub
         return pub
 
+    def drain(self, timeout: float) -> list[str]:
+        """Wait until every matched reliable reader has acknowledged what was published (a
+        latched hall event or the last frames would otherwise die with this process while still
+        in flight); returns the topics not acknowledged within ``timeout`` seconds."""
+        from rclpy.duration import Duration
+        from rclpy.qos import ReliabilityPolicy
+
+        deadline = time.monotonic() + timeout
+        unacked = []
+        for topic, pub in self._pubs.items():
+            if pub.qos_profile.reliability != ReliabilityPolicy.RELIABLE:
+                continue
+            left = max(deadline - time.monotonic(), 0.0)
+            if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                unacked.append(topic)
+        return unacked
+
     def wait_for_subscribers(self, topics: Sequence[str], timeout: float) -> list[str]:
         """Wait until each topic's publisher is matched; returns the topics still unmatched."""
         deadline = time.monotonic() + timeout
@@ -1061,6 +1078,7 @@ def replay_bag(
     match_grace_s: float = 1.0,
     hall_gap_s: float = 0.3,
     settle_s: float = 0.0,
+    drain_s: float = 5.0,
     progress: Callable[[int, int], None] | None = None,
     ros_args: Sequence[str] = (),
     messages: Callable[[], Iterator[tuple[str, str, int, Any]]] | None = None,
@@ -1086,7 +1104,10 @@ def replay_bag(
         Topics (e.g. ``/armourcam/poses``) that must have a subscriber in the graph before
         starting, within the same ``wait_subscribers`` seconds.
     settle_s : float
-        Seconds to keep spinning after the last message (so that reliable queues drain).
+        Seconds to keep spinning after the last message.
+    drain_s : float
+        Seconds, at most, to wait at the end for every matched reliable subscriber to
+        acknowledge what was published (:meth:`Replayer.drain`).
     messages : callable, optional
         Source of ``(topic, msgtype, time_ns, rosbags_message)`` (default: the bag's messages).
     """
@@ -1190,6 +1211,11 @@ def replay_bag(
                 progress(i + 1, total)
         if settle_s > 0:
             time.sleep(settle_s)
+        unacked = replayer.drain(drain_s)
+        if unacked:
+            node.get_logger().warning(
+                f"not acknowledged by every subscriber within {drain_s:.0f} s: {unacked}"
+            )
     finally:
         executor.shutdown()
         node.destroy_node()

@@ -238,6 +238,8 @@ def test_replay_into_a_namespace_feeds_a_namespaced_graph(
         "--as-fast-as-consumed",
         "--wait-for",
         "armourcam/detections",  # relative: the pose estimator in the namespace
+        "--wait-for",
+        "hall/run_id",  # this probe: its latched event must reach it before the replay exits
         "--ros-args",
         "-r",
         f"__ns:={ns}",

@@ -244,3 +244,40 @@ def test_a_sensor_data_graph_confirms_an_as_fast_as_consumed_replay(
     )
     (line,) = [s for s in out.stdout.splitlines() if "confirmed by the detector" in s]
     assert int(line.rsplit(" ", 1)[1]) >= 2, out.stdout + out.stderr
+
+
+def test_replay_drain_waits_for_every_subscriber_to_acknowledge(probe: Probe) -> None:
+    """:meth:`Replayer.drain` (the replay's last step) names a topic whose matched subscriber has
+    not acknowledged (a stopped process), and returns clean once it has: a latched hall event is
+    not lost by exiting while it is in flight."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from rosutil import ros_env
+    from std_msgs.msg import String
+
+    topic = f"/drain_probe_{os.getpid()}"
+    script = (
+        "import time, rclpy\n"
+        "from std_msgs.msg import String\n"
+        "from armourcam.graph import event_qos, use_dds_profile\n"
+        "use_dds_profile(); rclpy.init(); n = rclpy.create_node('drain_sub')\n"
+        f"n.create_subscription(String, {topic!r}, lambda m: None, event_qos())\n"
+        "rclpy.spin(n)\n"
+    )
+    child = subprocess.Popen([sys.executable, "-c", script], env=ros_env(), start_new_session=True)
+    try:
+        replayer = Replayer(probe.node)
+        pub = replayer.publisher(topic, "std_msgs/msg/String")
+        assert replayer.wait_for_subscribers([topic], 20.0) == []
+        probe.spin_for(1.0)  # the subscriber matches back
+        os.kill(child.pid, signal.SIGSTOP)
+        pub.publish(String(data="wave-7"))
+        assert replayer.drain(1.0) == [topic]
+        os.kill(child.pid, signal.SIGCONT)
+        assert replayer.drain(10.0) == []
+    finally:
+        os.killpg(child.pid, signal.SIGKILL)
+        child.wait(5.0)
