@@ -361,6 +361,35 @@ def test_covered_still_unit_does_not_take_a_still_neighbours_new_face(faces_fit:
     assert all(u.status == "still" for u in units if u is not lone)
 
 
+@pytest.mark.parametrize("shown_at", ["in_place", "with_the_pair"])
+def test_still_unit_showing_a_hidden_face_in_place_is_not_moved_by_a_stranger(
+    shown_at: str,
+) -> None:
+    """A unit seen before through its code-29 face only. After the run that face is covered,
+    and a code-29 face 45 mm away (a neighbour's, hidden before) is its only partner in the
+    gate, while the unit's code-3 face, hidden before, shows now.
+
+    Shown where the template puts it with the unit in place, the code-3 face says the unit did
+    not move: the pair is ruled out and nothing is displaced. Shown where it would be had the
+    unit moved with its pair, it is the mover's own face and the 2 Dn motion stands.
+    """
+    a, b = _row(2)
+    before = [p for p in _unit(a, R0) if p.code == 29]
+    stranger = next(p for p in _unit(b, R0) if p.code == 29)
+    where = a if shown_at == "in_place" else b
+    face3 = next(p for p in _unit(where, R0) if p.code == 3)
+    an = match_units(before, [stranger, face3], unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    unit = next(u for u in units if u.baseline_indices == (0,))
+    if shown_at == "in_place":
+        assert summary.displaced_units == 0, [(u.unit, u.status) for u in units]
+        assert unit.status != "displaced"
+        assert not any(d.is_match for d in an.result.displacements)
+    else:
+        assert unit.status == "displaced" and unit.n_matched == 1
+        np.testing.assert_allclose(unit.translation_mm, b - a, atol=1.0)
+
+
 def test_mover_keeps_its_face_from_the_unit_it_came_to_rest_in_front_of() -> None:
     """A unit moves 42 mm and comes to rest in front of a still unit, covering it. The still
     unit's code-29 fiducial is nearer the mover's new code-29 face (33 mm) than the mover's own
