@@ -167,11 +167,12 @@ def camera_motion(
 
 
 def camera_motion_message(motion: FrameAgreement) -> str:
-    """The warning for a camera that moved between the baseline and the current state."""
-    what = motion.describe(["the baseline", "the current state"])
+    """The warning for a camera that moved between the two states compared (the baseline and
+    a run's state, or two runs' states for an incremental report)."""
+    what = motion.describe(["the before state", "the after state"])
     return (
-        f"camera moved since the baseline? {what}; every displacement includes that motion: "
-        "check the camera mount and re-capture the baseline"
+        f"camera moved between the before and after states? {what}; every displacement "
+        "includes that motion: check the camera mount and re-capture the baseline"
     )
 
 

@@ -128,7 +128,7 @@ class Comparer:
             section_width_mm=self.section_width_mm,
         )
         report = report_dict(a.result, a.units, a.summary, unassigned=a.unassigned)
-        # What the comparison doubts (a camera moved since the baseline, a unit map that does
+        # What the comparison doubts (a camera moved between the two states, a unit map that does
         # not fit), as compare --json reports it.
         report["warnings"] = list(a.warnings)
         unit_of: dict[tuple[str, int], int] = {}

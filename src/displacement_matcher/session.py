@@ -833,13 +833,15 @@ class Session:
             report = {"fiducials": [], "units": [], "summary": {}, "error": "no baseline"}
             events.append(Notice("error", f"run {run_id}: no baseline to compare against"))
         else:
-            cumulative = self._safe_compare(self.baseline.poses, after, events, run_id)
+            cumulative = self._safe_compare(
+                self.baseline.poses, after, events, run_id, "the baseline"
+            )
             report = dict(cumulative.report)
             markers = cumulative.markers
             rows = cumulative.rows
         previous = next((r.poses for r in reversed(self.runs) if r.poses), None) if frames else None
         incremental = (
-            self._safe_compare(previous, after, events, run_id).report
+            self._safe_compare(previous, after, events, run_id, "the previous run").report
             if previous is not None
             else None
         )
@@ -874,14 +876,20 @@ class Session:
         after: Sequence[FiducialPose],
         events: list[Event],
         run_id: str,
+        against: str,
     ) -> Comparison:
+        """``self._compare(before, after)``; its failure and warnings become notices naming the
+        run and what it was compared ``against`` (the cumulative and the incremental report
+        may both warn)."""
         try:
             comparison = self._compare(before, after)
         except ValueError as err:
-            events.append(Notice("error", f"run {run_id}: comparison failed: {err}"))
+            events.append(
+                Notice("error", f"run {run_id} against {against}: comparison failed: {err}")
+            )
             return Comparison({"fiducials": [], "units": [], "summary": {}, "error": str(err)}, ())
         for message in comparison.report.get("warnings", ()):
-            events.append(Notice("warn", f"run {run_id}: {message}"))
+            events.append(Notice("warn", f"run {run_id} against {against}: {message}"))
         return comparison
 
     # ------------------------------------------------------------------ persistence

@@ -914,5 +914,13 @@ def test_a_camera_moved_during_a_run_is_warned(rng: np.random.Generator) -> None
     (done,) = of_type(events, RunCompleted)
     (warning,) = [w for w in done.run.report["warnings"] if w.startswith("camera moved")]
     assert "re-capture the baseline" in warning
-    notices = [e for e in of_type(events, Notice) if e.level == "warn" and "camera moved" in e.text]
-    assert notices and notices[0].text.startswith(f"run {done.run.run_id}: camera moved")
+    # The incremental report (against the previous run, taken with the camera where the
+    # baseline had it) warns too; each notice says which comparison it is about.
+    incremental = done.run.report["incremental"]["warnings"]
+    assert [w for w in incremental if w.startswith("camera moved")]
+    notices = [e.text for e in of_type(events, Notice) if e.level == "warn" and "camera" in e.text]
+    run = done.run.run_id
+    assert [t.split(": camera moved")[0] for t in notices] == [
+        f"run {run} against the baseline",
+        f"run {run} against the previous run",
+    ], notices

@@ -126,5 +126,6 @@ def test_a_camera_moved_between_the_states_is_named() -> None:
     ]
     cmp = compare_poses(before, bumped, limits)
     assert cmp.camera_motion is not None
-    assert cmp.warnings and cmp.warnings[0].startswith("camera moved since the baseline?")
+    assert cmp.warnings
+    assert cmp.warnings[0].startswith("camera moved between the before and after states?")
     assert "re-capture the baseline" in cmp.warnings[0]
