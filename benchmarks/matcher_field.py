@@ -45,14 +45,19 @@ grouped, not overturned units whose motion was measured, mm. Truth "displaced": 
 the unit's centre moved >= 1 Dn.
 
 Run: ``.venv/bin/python -m benchmarks.matcher_field [--seeds 3] [--source noisy|e2e]
-[--image-fit]``.
+[--image-fit] [--pose-cache DIR] [--methods armourcam auto ...]``. The last lines sum every
+method over the seeds. The thirty-seed figures of the README:
+``--source e2e --seeds 30 --pose-cache DIR --methods armourcam auto`` (about an hour to render and
+detect the first time, two minutes once the poses are cached).
 """
 
 from __future__ import annotations
 
 import argparse
+import pickle
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -379,6 +384,19 @@ def main() -> None:
         help="e2e: refine every pose by the image fit (pose_estimator.image_fit)",
     )
     ap.add_argument(
+        "--pose-cache",
+        type=Path,
+        help="e2e: keep each seed's detected poses in this folder and reuse them (rendering and "
+        "detecting takes about a minute a seed; the matching is what is being measured)",
+    )
+    ap.add_argument(
+        "--methods",
+        nargs="+",
+        choices=METHODS,
+        default=list(METHODS),
+        help="methods to run (default all)",
+    )
+    ap.add_argument(
         "--band-dn",
         type=float,
         default=0.15,
@@ -398,20 +416,30 @@ def main() -> None:
         f"{'err rms x/y/z mm':>18} {'err max x/y/z mm':>18} "
         f"{'time s':>6}"
     )
+    totals: dict[str, dict[str, int]] = {}
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         field = make_field(args.units, seed=seed, diameter_mm=args.diameter_mm)
         if args.source == "noisy":
             base, cur, bid, cid = poses_noisy(field, seed)
         else:
-            base, cur, bid, cid = poses_e2e(field, seed, args.diameter_mm, args.image_fit)
+            base, cur, bid, cid = _cached_e2e(field, seed, args)
             print(
                 f"     e2e seed {seed}: poses before {len(base)} of {field.before.visible.sum()} "
                 f"visible ({field.before.observable.sum()} observable), after {len(cur)} of "
                 f"{field.after.visible.sum()} ({field.after.observable.sum()}); before: "
                 + pose_quality(field.before, base, np.asarray(bid))
             )
-        for method in ("armourcam", "auto", "global", "nearest", "icp"):
+        for method in args.methods:
             r = evaluate(field, base, cur, np.asarray(bid), np.asarray(cid), method, args.band_dn)
+            total = totals.setdefault(method, dict.fromkeys(_TOTALS, 0))
+            total["still"] += r["still_disp"]
+            total["fp"] += len(r["fp_units"])
+            total["fn"] += len(r["fn_units"])
+            total["true"] += r["true"]
+            total["band_fp"] += len(r["fp_band"])
+            total["band_fn"] += len(r["fn_band"])
+            total["near_wrong"] += round((100.0 - r["near"]) * r["near_n"] / 100.0)
+            total["near_n"] += r["near_n"]
             rms = "/".join(f"{v:.2f}" for v in r["rms"])
             med = "/".join(f"{v:.2f}" for v in r["med"])
             mx = "/".join(f"{v:.2f}" for v in r["max"])
@@ -433,6 +461,44 @@ def main() -> None:
                 print(
                     f"          missed units [{_tag(r['fn_units'])}], false [{_tag(r['fp_units'])}]"
                 )
+
+    print(
+        f"over {args.seeds} seeds: still->disp, false / missed displaced units (of the truly "
+        "displaced measurable ones), the same outside the band, fiducials matched wrong where the "
+        "move is under half the nearest-neighbour spacing"
+    )
+    for method, t in totals.items():
+        print(
+            f"{'all':>4} {method:>9} still->disp {t['still']}, fp/fn {t['fp']}/{t['fn']} of "
+            f"{t['true']}, band fp/fn {t['band_fp']}/{t['band_fn']}, wrong<NN/2 "
+            f"{t['near_wrong']} of {t['near_n']}"
+        )
+
+
+METHODS = ("armourcam", "auto", "global", "nearest", "icp")
+_TOTALS = ("still", "fp", "fn", "true", "band_fp", "band_fn", "near_wrong", "near_n")
+
+
+def _cached_e2e(
+    field: Field, seed: int, args: argparse.Namespace
+) -> tuple[list, list, NDArray, NDArray]:
+    """:func:`poses_e2e`, kept in ``args.pose_cache`` (when given) under a name that says what
+    made it (written atomically: an interrupted run leaves no half file)."""
+    if args.pose_cache is None:
+        return poses_e2e(field, seed, args.diameter_mm, args.image_fit)
+    fit = "_fit" if args.image_fit else ""
+    path = args.pose_cache / f"e2e_seed{seed}_units{args.units}_d{args.diameter_mm:g}{fit}.pkl"
+    if path.exists():
+        with path.open("rb") as f:
+            cached: tuple[list, list, NDArray, NDArray] = pickle.load(f)  # our own file
+        return cached
+    poses = poses_e2e(field, seed, args.diameter_mm, args.image_fit)
+    args.pose_cache.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with tmp.open("wb") as f:
+        pickle.dump(poses, f)
+    tmp.replace(path)
+    return poses
 
 
 if __name__ == "__main__":
