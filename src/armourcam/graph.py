@@ -325,6 +325,16 @@ class RecentStamps:
             self._keys.discard(self._order.popleft())
         return False
 
+    def skip_repeat(self, header: Any, logger: Any, what: str) -> bool:
+        """:meth:`repeated`, saying so in ``logger`` (throttled) when it is: a node's intake of
+        ``what`` (e.g. ``"pose frames"``) calls it first and returns on True."""
+        if not self.repeated(header):
+            return False
+        logger.info(
+            f"{what} already taken, ignored ({self.repeats} so far)", throttle_duration_sec=5.0
+        )
+        return True
+
 
 def latched_qos(depth: int = 1) -> QoSProfile:
     """RELIABLE + TRANSIENT_LOCAL: a late subscriber gets the last ``depth`` messages."""

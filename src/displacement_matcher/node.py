@@ -343,11 +343,7 @@ class DisplacementMatcherNode(Node):
     # ------------------------------------------------------------------ callbacks
 
     def _on_poses(self, msg: PointCloud2) -> None:
-        if self.seen.repeated(msg.header):
-            self.get_logger().info(
-                f"pose frames already taken, ignored ({self.seen.repeats} so far)",
-                throttle_duration_sec=5.0,
-            )
+        if self.seen.skip_repeat(msg.header, self.get_logger(), "pose frames"):
             return
         self.input_age.received()
         try:

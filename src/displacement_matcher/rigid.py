@@ -173,6 +173,16 @@ def rigid_fit(
     return np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
 
 
+def rms_misfit(
+    R: NDArray[np.float64],
+    t: NDArray[np.float64],
+    before: NDArray[np.float64],
+    after: NDArray[np.float64],
+) -> float:
+    """RMS distance (mm) between ``R @ before + t`` and ``after``, row by row."""
+    return float(np.sqrt(np.mean(np.sum((before @ R.T + t - after) ** 2, axis=1))))
+
+
 def across_line_of_sight(
     vectors: NDArray[np.float64], through: NDArray[np.float64]
 ) -> NDArray[np.float64]:

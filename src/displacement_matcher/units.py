@@ -52,7 +52,7 @@ from pose_estimator.types import FiducialPose
 from pose_estimator.yaml_file import YamlFileError, load_yaml
 
 from .errors import MatcherError
-from .rigid import consistent_subset, rigid_fit
+from .rigid import consistent_subset, rigid_fit, rms_misfit
 from .types import MatchResult, UnitMotion
 
 DEFAULT_SPAN_MM = 40.0
@@ -565,7 +565,7 @@ def _template_branches(
         return None
     # The points must fit too (as in template_pose): a stranger among them makes any branch
     # choice meaningless.
-    if np.sqrt(np.mean(np.sum((local @ R.T + t - seen) ** 2, axis=1))) > 5.0:
+    if rms_misfit(R, t, local, seen) > 5.0:
         return None
     return n_used
 
@@ -632,7 +632,7 @@ def _branches_by_points(
         return nb, na
     w = 1.0 / np.maximum(np.sum(sigma**2, axis=1), 1e-6)
     R, t = rigid_fit(before, after, w)
-    if np.sqrt(np.mean(np.sum((before @ R.T + t - after) ** 2, axis=1))) > 1.0:
+    if rms_misfit(R, t, before, after) > 1.0:
         return nb, na
     return _closest_branches((nb, mirror_normals(before, nb)), (na, mirror_normals(after, na)), R)
 
@@ -667,7 +667,7 @@ def template_pose(
         R, t = rigid_fit(local, seen, w)
     else:
         return None
-    if np.sqrt(np.mean(np.sum((local @ R.T + t - seen) ** 2, axis=1))) > 5.0:
+    if rms_misfit(R, t, local, seen) > 5.0:
         return None
     return np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
 
@@ -1290,7 +1290,7 @@ def _motion_of_unit(
             R, t = rigid_fit(before, after, w, nb, na)
         else:
             R, t = rigid_fit(before, after, w)
-        resid = float(np.sqrt(np.mean(np.sum((before @ R.T + t - after) ** 2, axis=1))))
+        resid = rms_misfit(R, t, before, after)
         ref = centre if centre is not None else ref_all
         trans = R @ ref + t - ref
         rot_deg: float | None = _rotation_deg(R)

@@ -263,11 +263,7 @@ class PoseEstimatorNode(Node):
 
     def _on_detections(self, msg: PointCloud2) -> None:
         self.received += 1
-        if self.seen.repeated(msg.header):
-            self.get_logger().info(
-                f"frames already processed, ignored ({self.seen.repeats} so far)",
-                throttle_duration_sec=5.0,
-            )
+        if self.seen.skip_repeat(msg.header, self.get_logger(), "detection frames"):
             return
         self.input_age.received()
         if self.camera is None:

@@ -125,6 +125,18 @@ class Probe:
         self.context.try_shutdown()
 
 
+def start_armourcam(*args: str, **popen: Any) -> subprocess.Popen[Any]:
+    """Start the ``armourcam`` command line in its own process group in the test's domain, not
+    waiting for it (``popen``: stdout, stderr, text... as :class:`subprocess.Popen` takes them;
+    the caller stops it, e.g. with ``graph.stop_processes``)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "armourcam.cli", *args],
+        env=ros_env(),
+        start_new_session=True,
+        **popen,
+    )
+
+
 def armourcam(*args: str, timeout: float = 90.0) -> subprocess.CompletedProcess[str]:
     """Run the ``armourcam`` command line as a separate process in the test's domain."""
     return subprocess.run(

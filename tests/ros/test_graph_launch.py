@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from rosutil import Probe, ros_env
+from rosutil import Probe, ros_env, start_armourcam
 
 from armourcam import graph
 
@@ -76,14 +76,13 @@ def test_nodes_end_when_the_launcher_is_killed(tmp_path: Path) -> None:
     launcher."""
     import signal
     import subprocess
-    import sys
 
-    launcher = subprocess.Popen(
-        [sys.executable, "-m", "armourcam.cli", "graph", "--log-dir", str(tmp_path)],
-        env=ros_env(),
+    launcher = start_armourcam(
+        "graph",
+        "--log-dir",
+        str(tmp_path),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
-        start_new_session=True,
     )
     kids: list[int] = []
     try:
@@ -239,12 +238,8 @@ def _start_launcher(tmp_path: Path, *options: str) -> subprocess.Popen[bytes]:
     """``armourcam graph`` with node logs in ``tmp_path`` and its own stderr in
     ``tmp_path/launcher.err``."""
     with open(tmp_path / "launcher.err", "wb") as err:
-        return subprocess.Popen(
-            [sys.executable, "-m", "armourcam.cli", "graph", "--log-dir", str(tmp_path), *options],
-            env=ros_env(),
-            stdout=subprocess.DEVNULL,
-            stderr=err,
-            start_new_session=True,
+        return start_armourcam(
+            "graph", "--log-dir", str(tmp_path), *options, stdout=subprocess.DEVNULL, stderr=err
         )
 
 

@@ -9,14 +9,13 @@ everything after ``--ros-args`` to rclpy (graph: to every node).
 from __future__ import annotations
 
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from rosutil import Nodes, Probe, armourcam, ros_env
+from rosutil import Nodes, Probe, armourcam, start_armourcam
 
 from armourcam import bagio, graph, image_codec
 from armourcam.cli import build_parser
@@ -148,27 +147,20 @@ def test_compressed_input_follows_the_namespace_and_a_relative_remap(
 def test_graph_hands_ros_args_to_every_node(probe: Probe, tmp_path: Path, mode: list[str]) -> None:
     ns = "/cell_ns3"
     data = tmp_path / "data"
-    launcher = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "armourcam.cli",
-            "graph",
-            *mode,
-            "--log-dir",
-            str(tmp_path),
-            "--ros-args",
-            "-r",
-            f"__ns:={ns}",
-            "-p",
-            "diameter_mm:=10.0",
-            "-p",
-            f"data_dir:={data}",
-        ],
-        env=ros_env(),
+    launcher = start_armourcam(
+        "graph",
+        *mode,
+        "--log-dir",
+        str(tmp_path),
+        "--ros-args",
+        "-r",
+        f"__ns:={ns}",
+        "-p",
+        "diameter_mm:=10.0",
+        "-p",
+        f"data_dir:={data}",
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
-        start_new_session=True,
     )
     try:
         found = _wait_nodes(probe, ns, graph.NODE_NAMES)
@@ -263,25 +255,18 @@ def test_record_in_a_namespace_records_the_cells_topics(probe: Probe, tmp_path: 
     report.publish(String(data='{"run": 1}'))
     root.publish(String(data='{"run": "other cell"}'))
     bag = tmp_path / "bag"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "armourcam.cli",
-            "record",
-            "--out",
-            str(bag),
-            "--duration",
-            "4",
-            "--ros-args",
-            "-r",
-            f"__ns:={ns}",
-        ],
-        env=ros_env(),
+    proc = start_armourcam(
+        "record",
+        "--out",
+        str(bag),
+        "--duration",
+        "4",
+        "--ros-args",
+        "-r",
+        f"__ns:={ns}",
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        start_new_session=True,
     )
     try:
         deadline = time.monotonic() + 60.0

@@ -7,7 +7,6 @@ hall events recorded by default."""
 from __future__ import annotations
 
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -15,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from rosutil import REPO, Probe, armourcam, ros_env
+from rosutil import REPO, Probe, armourcam, start_armourcam
 
 from armourcam import bagio, graph
 from armourcam.commands.record import TOPIC_TYPES
@@ -29,13 +28,14 @@ class Recorder:
 
     def __init__(self, bag: Path, *args: str) -> None:
         self.bag = bag
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "armourcam.cli", "record", "--out", str(bag), *args],
-            env=ros_env(),
+        self.proc = start_armourcam(
+            "record",
+            "--out",
+            str(bag),
+            *args,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
-            start_new_session=True,
         )
         self.lines: list[str] = []
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -138,14 +138,16 @@ def test_record_matches_each_publisher_and_stores_its_qos(probe: Probe, tmp_path
     node.create_subscription(String, "/hall/run_id", lambda _: None, latched_qos(10))
 
     bag = tmp_path / "bag"
-    cmd = [sys.executable, "-m", "armourcam.cli", "record", "--out", str(bag), "--inputs"]
-    proc = subprocess.Popen(
-        [*cmd, "--duration", "6"],
-        env=ros_env(),
+    proc = start_armourcam(
+        "record",
+        "--out",
+        str(bag),
+        "--inputs",
+        "--duration",
+        "6",
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        start_new_session=True,
     )
     try:
         deadline = time.monotonic() + 60.0
