@@ -38,6 +38,7 @@ from .units import (
     UnitMap,
     UnitSpec,
     assign_units,
+    branch_fit,
     learn_pair_distances,
     mirror_normals,
     still_in_place,
@@ -54,6 +55,39 @@ UNMOVED_CHI2 = 7.81
 #: and model misfit that differ between two images shift a pose by microns, beyond a clean
 #: image's noise-only covariance); far below any motion the damage count tells apart.
 UNMOVED_MM = 0.5
+# A baseline unit left out of the whole-unit assignment (:func:`assign_unit_groups`) is either
+# hidden behind something that came to rest in front of it, or lost from view; losing a unit
+# costs this much there (half the matcher's gate: what one unmatched fiducial costs), so that of
+# two units claiming one group, the one whose place is now covered stays behind it.
+LOST_COST_MM = 25.0
+# In front of a baseline face: within this distance of it across the line of sight (a face of
+# the unit resting over it) ...
+COVER_MM = 10.0
+# ... and nearer the camera by this much plus three standard deviations of the two depths.
+COVER_DEPTH_MM = 5.0
+
+
+@dataclass(frozen=True, slots=True)
+class GroupAssignment:
+    """A baseline unit found whole in a current group (:func:`assign_unit_groups`).
+
+    Attributes
+    ----------
+    baseline_indices : tuple of int
+        The unit's baseline fiducials.
+    translation_mm : (3,) ndarray
+        Its translation, camera frame (mm).
+    current_indices : tuple of int
+        The current group's fiducials.
+    misfit_mm : float
+        How far one rigid motion of the shared faces (positions and normals) misses the worst
+        of them, across the line of sight (mm): 8 mm off is not one body.
+    """
+
+    baseline_indices: tuple[int, ...]
+    translation_mm: NDArray[np.float64]
+    current_indices: tuple[int, ...]
+    misfit_mm: float
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -93,25 +127,25 @@ def match_units(
 ) -> UnitAnalysis:
     """Match fiducials, find units and their motion, then re-match knowing how units moved.
 
-    The first pass is :func:`displacement_matcher.match` alone. A unit whose same-code matches
-    agree on a rigid motion predicts where each of its baseline fiducials is now; the next pass
-    measures costs from those predictions with a tight gate for them (``rigid_gate_mm`` after a
-    rigid fit, ``translation_gate_mm`` after a translation, which ignores the unit's rotation).
-    So a still unit's fiducial that is hidden now no longer grabs a stranger 40 mm away, and a
-    moved unit's fiducials find their new places. Without an explicit unit map, baseline units
-    are also matched one to one to the current state's units (:func:`assign_unit_groups`); where
-    that places a unit elsewhere than its own matches do, its fiducials are predicted there
-    (translation gate). Faces still seen where they were (across the line of sight, where one
-    image measures precisely) outweigh pairs that moved: a unit most of whose faces are in place
-    is looked for there, and so is a unit measured through one pair that moved while a face of
-    its code is in place. A lone pair is ruled out where its fiducial is another unit's face,
-    by that unit's own matches (:func:`_contested_lone_pairs`; where that unit is itself
-    measured through one pair, by the rotation its pair's normals and the fiducial's own fix,
-    :func:`_turned_onto`) or by the template fitted to a still neighbour's faces
-    (:func:`_neighbour_faces_taken`), or where the unit shows now, in place, a face it hid
-    before (:func:`_hidden_face_shown`). A unit none of whose faces matched is found again where
-    the faces it shows now, none matched either, fit the template
-    (:func:`.units.unit_motions`). Each pass is still one exact global matching.
+    The first pass is :func:`displacement_matcher.match` alone. A unit whose same-code matches agree
+    on a rigid motion predicts where each of its baseline fiducials is now; the next pass measures
+    costs from those predictions with a tight gate for them (``rigid_gate_mm`` after a rigid fit,
+    ``translation_gate_mm`` after a translation, which ignores the unit's rotation). So a still
+    unit's fiducial that is hidden now no longer grabs a stranger 40 mm away, and a moved unit's
+    fiducials find their new places. Without an explicit unit map, baseline units are also matched
+    one to one to the current state's units (:func:`assign_unit_groups`); where that places a unit
+    elsewhere than its own matches do, its fiducials are predicted there (translation gate), and the
+    pairs other units made into that group are ruled out. Faces still seen where they were (across
+    the line of sight, where one image measures precisely) outweigh pairs that moved: a unit most of
+    whose faces are in place is looked for there, and so is a unit measured through one pair that
+    moved while a face of its code is in place. A lone pair is ruled out where its fiducial is
+    another unit's face, by that unit's own matches (:func:`_contested_lone_pairs`; where that unit
+    is itself measured through one pair, by the rotation its pair's normals and the fiducial's own
+    fix, :func:`_turned_onto`) or by the template fitted to a still neighbour's faces
+    (:func:`_neighbour_faces_taken`), or where the unit shows now, in place, a face it hid before
+    (:func:`_hidden_face_shown`). A unit none of whose faces matched is found again where the faces
+    it shows now, none matched either, fit the template (:func:`.units.unit_motions`). Each pass is
+    still one exact global matching.
 
     Parameters
     ----------
@@ -254,7 +288,7 @@ def match_units(
             # Whole units found in their new places (two or more faces moving together, one to
             # one) override what single fiducials suggested where the two disagree (across the
             # line of sight, beyond the rigid gate).
-            for ix, t in assign_unit_groups(
+            assigned = assign_unit_groups(
                 baseline,
                 current,
                 groups[0],
@@ -262,12 +296,29 @@ def match_units(
                 gate_mm=gate_used,
                 tol_mm=rigid_gate_mm,
                 shown=in_place,
-            ):
-                for i in ix:
-                    p = np.asarray(baseline[i].position_mm, dtype=np.float64) + t
+            )
+            for a in assigned:
+                for i in a.baseline_indices:
+                    p = np.asarray(baseline[i].position_mm, dtype=np.float64) + a.translation_mm
                     if _seen_in_place(pred[i], p, rigid_gate_mm):
                         continue
                     pred[i] = p
+                    gate[i] = translation_gate_mm
+            # Pairs into a group another unit was assigned, whose shared faces one rigid motion
+            # carries within STILL_SHOWN_MM: that unit came to rest there, and this one (a still
+            # unit hidden behind it, most often) is looked for where it was (30 dolos-field
+            # seeds: still units counted displaced 14 -> 11, missed displaced 59 -> 55).
+            owner = {
+                j: k
+                for k, a in enumerate(assigned)
+                if a.misfit_mm <= STILL_SHOWN_MM
+                for j in a.current_indices
+            }
+            own = {i: k for k, a in enumerate(assigned) for i in a.baseline_indices}
+            for i, j in pair_of.items():
+                if j in owner and own.get(i) != owner[j]:
+                    excluded.add((i, j))
+                    pred[i] = baseline[i].position_mm
                     gate[i] = translation_gate_mm
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
         excluded |= _contested_lone_pairs(baseline, current, units, pred, lone, span)
@@ -309,7 +360,7 @@ def assign_unit_groups(
     gate_mm: float,
     tol_mm: float,
     shown: dict[int, int] | None = None,
-) -> list[tuple[list[int], NDArray[np.float64]]]:
+) -> list[GroupAssignment]:
     """Baseline units matched one to one to the current state's units, by their shared codes.
 
     Fiducial by fiducial, a moved unit loses to a still neighbour it landed on: the neighbour's
@@ -326,7 +377,11 @@ def assign_unit_groups(
     still seen in place (:func:`.units.still_in_place`) did not move: it takes no part, and the
     current unit holding that face is its own, so no other unit may claim it; the mover then
     gets the group it moved to. (A neighbour hidden entirely is not told apart from a mover by
-    positions: the smaller motion wins, as before.) Units of one fiducial are left to the
+    the pairs' positions alone.) Staying unassigned costs nothing for a unit
+    with a candidate group's face now in front of one of its own (:func:`_covered`: it is hidden
+    there) and :data:`LOST_COST_MM` otherwise: of two units whose faces fit one group, the one
+    whose place is now empty moved, and the one it covers stays (a mover come to rest 20 mm in
+    front of a neighbour showing the same codes). Units of one fiducial are left to the
     fiducial matching (one face is weak evidence). Translations are limited to ``2 * gate_mm``
     (``gate_mm`` across the line of sight).
 
@@ -347,9 +402,8 @@ def assign_unit_groups(
 
     Returns
     -------
-    list of (list of int, (3,) ndarray)
-        For each assigned baseline unit, its baseline indices and its translation (camera
-        frame, mm).
+    list of GroupAssignment
+        One per assigned baseline unit: its fiducials, translation and current group.
     """
     cur_of: list[dict[int, int]] = []
     for g in cur_groups:
@@ -374,6 +428,7 @@ def assign_unit_groups(
     cols: list[int] = []
     costs: list[float] = []
     motions: list[NDArray[np.float64]] = []
+    misfits: list[float] = []
     for n, (_, ix) in enumerate(base_units):
         if len(ix) < 2 or n in still_units:
             continue
@@ -408,27 +463,95 @@ def assign_unit_groups(
             cols.append(c)
             costs.append(length - gate_mm * len(shared))
             motions.append(t)
+            misfits.append(_rigid_misfit(baseline, current, shared))
     if not rows:
         return []
     ur = sorted(set(rows))
     uc = sorted(set(cols))
     rpos = {n: k for k, n in enumerate(ur)}
     cpos_k = {c: k for k, c in enumerate(uc)}
-    # Square matrix with a no-match column per row (cost 0) so every unit may stay unassigned.
+    # Square matrix with a no-match column per row so every unit may stay unassigned.
     big = 1e9
     cost = np.full((len(ur), len(uc) + len(ur)), big)
-    cost[:, len(uc) :] = np.where(np.eye(len(ur), dtype=bool), 0.0, big)
+    # A unit left unassigned is either hidden (behind a unit that may have come to rest in
+    # front of it: a candidate group's faces) or lost from view, which is rarer.
+    occluders = sorted({j for c in uc for j in cur_groups[c]})
+    vacancy = np.array(
+        [
+            0.0 if _covered(baseline, current, base_units[n][1], occluders) else LOST_COST_MM
+            for n in ur
+        ]
+    )
+    cost[:, len(uc) :] = np.where(np.eye(len(ur), dtype=bool), vacancy[:, None], big)
     which: dict[tuple[int, int], int] = {}
     for k, (n, c, x) in enumerate(zip(rows, cols, costs, strict=True)):
         cost[rpos[n], cpos_k[c]] = x
         which[(rpos[n], cpos_k[c])] = k
     ri, ci = linear_sum_assignment(cost)
-    out: list[tuple[list[int], NDArray[np.float64]]] = []
+    out: list[GroupAssignment] = []
     for r, c in zip(ri.tolist(), ci.tolist(), strict=True):
         hit = which.get((r, c))
         if hit is not None:
-            out.append((list(base_units[ur[r]][1]), motions[hit]))
+            out.append(
+                GroupAssignment(
+                    tuple(base_units[ur[r]][1]),
+                    motions[hit],
+                    tuple(cur_groups[uc[c]]),
+                    misfits[hit],
+                )
+            )
     return out
+
+
+def _rigid_misfit(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    pairs: Sequence[tuple[int, int]],
+) -> float:
+    """How far one rigid motion (fitted to the pairs' positions and normals, each current
+    normal on its better branch: :func:`.units.branch_fit`) misses the worst pair, across the
+    line of sight (mm; inf without usable normals)."""
+    before = [baseline[i] for i, _ in pairs]
+    after = [current[j] for _, j in pairs]
+    nb, na = unit_normals(before), unit_normals(after)
+    pb = np.array([p.position_mm for p in before], dtype=np.float64)
+    pa = np.array([p.position_mm for p in after], dtype=np.float64)
+    if nb is None or na is None or not (np.all(np.isfinite(pb)) and np.all(np.isfinite(pa))):
+        return float("inf")
+    R, t, _ = branch_fit(pb, pa, np.ones(len(pairs)), nb, na)
+    off = pb @ R.T + t - pa
+    return max(
+        float(np.linalg.norm(across_line_of_sight(o, q))) for o, q in zip(off, pa, strict=True)
+    )
+
+
+def _covered(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    members: Sequence[int],
+    occluders: Sequence[int],
+) -> bool:
+    """Whether one of the current fiducials ``occluders`` lies in front of a baseline unit's
+    faces (``members``): within :data:`COVER_MM` of one across the line of sight and nearer the
+    camera by more than :data:`COVER_DEPTH_MM` plus three standard deviations of the depths."""
+    if not occluders:
+        return False
+    cpos = np.array([current[j].position_mm for j in occluders], dtype=np.float64)
+    csd = np.array([current[j].sigma_mm[2] for j in occluders], dtype=np.float64)
+    for i in members:
+        b = np.asarray(baseline[i].position_mm, dtype=np.float64)
+        n = float(np.linalg.norm(b))
+        if not np.isfinite(n) or n == 0:
+            continue
+        ray = b / n
+        v = cpos - b
+        along = v @ ray
+        lateral = np.linalg.norm(v - along[:, None] * ray, axis=1)
+        margin = COVER_DEPTH_MM + 3.0 * np.hypot(csd, float(baseline[i].sigma_mm[2]))
+        with np.errstate(invalid="ignore"):
+            if np.any((lateral <= COVER_MM) & (-along > margin)):
+                return True
+    return False
 
 
 def _same_inputs(a: tuple[Any, ...], b: tuple[Any, ...]) -> bool:
@@ -845,7 +968,7 @@ def _turned_onto(
     wrong branch of the circle pose's two-fold ambiguity (:func:`.units.mirror_normals`), and
     choosing per pair the smallest turn can pick branches no one rotation explains: the
     combination with which the rotation carries its worst normal best is taken (as
-    :func:`.units._branch_fit` chooses), and must carry both within 15 deg. Then the pair's
+    :func:`.units.branch_fit` chooses), and must carry both within 15 deg. Then the pair's
     offset with that rotation must put ``k`` within :data:`STILL_SHOWN_MM` of ``j`` across the
     line of sight (where one image measures precisely; the pair's depth does not move a
     prediction across it): the positions, which chose nothing, are the test.

@@ -509,7 +509,7 @@ def mirror_normals(
     return np.asarray(2.0 * np.einsum("ki,ki->k", n, v)[:, None] * v - n, dtype=np.float64)
 
 
-def _branch_fit(
+def branch_fit(
     local: NDArray[np.float64],
     seen: NDArray[np.float64],
     w: NDArray[np.float64],
@@ -560,7 +560,7 @@ def _template_branches(
     n_local = np.array([template.normals[c] for c in codes])
     seen = np.array([p.position_mm for p in poses], dtype=np.float64)
     w = np.array([1.0 / max(float(np.trace(p.covariance_mm2)) / 3.0, 1e-6) for p in poses])
-    R, t, n_used = _branch_fit(local, seen, w, n_local, normals)
+    R, t, n_used = branch_fit(local, seen, w, n_local, normals)
     if np.any(np.einsum("ki,ki->k", n_local @ R.T, n_used) < np.cos(np.radians(30.0))):
         return None
     # The points must fit too (as in template_pose): a stranger among them makes any branch
@@ -660,7 +660,7 @@ def template_pose(
         # Each pose's normal may be on the wrong branch of the circle's two-fold ambiguity: the
         # branches that fit the template best are used; a normal still far off means a grouping
         # mistake, and then the template cannot be trusted to locate the unit.
-        R, t, n_used = _branch_fit(local, seen, w, n_local, n_seen)
+        R, t, n_used = branch_fit(local, seen, w, n_local, n_seen)
         if np.any(np.einsum("ki,ki->k", n_local @ R.T, n_used) < np.cos(np.radians(30.0))):
             return None
     elif len(sel) >= 3:

@@ -430,6 +430,31 @@ def _mover_in_front_of_covered_unit(
     return mover, still, summary.displaced_units
 
 
+def test_mover_resting_in_front_of_a_unit_showing_the_same_faces_is_the_one_displaced() -> None:
+    """A unit seen through codes 17 and 29 moves 42 mm and comes to rest 20 mm in front of a
+    still unit that showed the same two codes, almost on its line of sight (3 mm across it),
+    and hides it. Both units' faces fit the mover's new faces as one rigid body; the still
+    unit's motion would be the shorter (20 mm, mostly depth). But the mover's old place is
+    empty now while the still unit's is covered by what came to rest in front of it: the mover
+    is displaced by its true motion, the still unit is lost behind it (seed 16 of the
+    end-to-end dolos fields; before, the still unit was displaced and the mover lost).
+    """
+    a = np.array([0.0, 0.0, 1800.0])
+    m = a + np.array([40.0, 0.0, 0.0])
+    move = (a + np.array([3.0, 3.0, -20.0])) - m
+    still = [p for p in _unit(a, R0) if p.code in (17, 29)]
+    mover_before = [p for p in _unit(m, R0) if p.code in (17, 29)]
+    mover_after = [p for p in _unit(m + move, R0) if p.code in (17, 29)]
+    an = match_units(still + mover_before, mover_after, unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    mover = next(u for u in units if set(u.baseline_indices) == {2, 3})
+    covered = next(u for u in units if set(u.baseline_indices) == {0, 1})
+    assert summary.displaced_units == 1
+    assert mover.status == "displaced" and mover.n_matched == 2
+    np.testing.assert_allclose(mover.translation_mm, move, atol=1.0)
+    assert covered.status == "lost"
+
+
 @pytest.mark.parametrize("flipped", [False, True])
 @pytest.mark.parametrize(
     ("axis", "deg"), [([0.0, 0.0, 1.0], 21.0), ([0.0, 1.0, 0.0], 30.0), ([1.0, 1.0, 0.0], 21.0)]
