@@ -540,16 +540,14 @@ def _covered(
     csd = np.array([current[j].sigma_mm[2] for j in occluders], dtype=np.float64)
     for i in members:
         b = np.asarray(baseline[i].position_mm, dtype=np.float64)
-        n = float(np.linalg.norm(b))
-        if not np.isfinite(n) or n == 0:
+        if not (np.all(np.isfinite(b)) and np.any(b)):
             continue
-        ray = b / n
         v = cpos - b
-        along = v @ ray
-        lateral = np.linalg.norm(v - along[:, None] * ray, axis=1)
+        nearer = -(v @ b) / float(np.linalg.norm(b))
+        lateral = np.linalg.norm(across_line_of_sight(v, b), axis=1)
         margin = COVER_DEPTH_MM + 3.0 * np.hypot(csd, float(baseline[i].sigma_mm[2]))
         with np.errstate(invalid="ignore"):
-            if np.any((lateral <= COVER_MM) & (-along > margin)):
+            if np.any((lateral <= COVER_MM) & (nearer > margin)):
                 return True
     return False
 
