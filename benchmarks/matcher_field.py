@@ -66,6 +66,7 @@ from scipy.spatial import cKDTree
 
 from armourcam.field import Field, FieldState, make_field
 from displacement_matcher import match
+from displacement_matcher.atomic import write_atomic
 from displacement_matcher.damage import assess, thresholds
 from displacement_matcher.refine import match_units
 from displacement_matcher.rigid import kabsch
@@ -493,11 +494,7 @@ def _cached_e2e(
             cached: tuple[list, list, NDArray, NDArray] = pickle.load(f)  # our own file
         return cached
     poses = poses_e2e(field, seed, args.diameter_mm, args.image_fit)
-    args.pose_cache.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    with tmp.open("wb") as f:
-        pickle.dump(poses, f)
-    tmp.replace(path)
+    write_atomic(path, pickle.dumps(poses))
     return poses
 
 

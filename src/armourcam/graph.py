@@ -35,7 +35,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Hashable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -293,6 +293,26 @@ class InputAge:
         return {"last_input_age_s": "" if age is None else f"{age:.1f}"}
 
 
+class KeyMemory:
+    """The last ``size`` distinct keys seen (a bounded memory of what came already)."""
+
+    def __init__(self, size: int) -> None:
+        self._order: deque[Hashable] = deque()
+        self._keys: set[Hashable] = set()
+        self.size = size
+
+    def seen(self, key: Hashable) -> bool:
+        """Whether ``key`` is remembered; if not, remember it (forgetting the oldest beyond
+        ``size``)."""
+        if key in self._keys:
+            return True
+        self._keys.add(key)
+        self._order.append(key)
+        while len(self._order) > self.size:
+            self._keys.discard(self._order.popleft())
+        return False
+
+
 class RecentStamps:
     """The header stamps (with frame_id) of a node's last ``size`` input frames, to recognise a
     frame delivered again: the transient-local history a restarted upstream node (or a second
@@ -304,8 +324,7 @@ class RecentStamps:
     def __init__(self, size: int = 256) -> None:
         if size < 1:
             raise GraphError(f"stamp memory must hold >= 1 frame, got {size}")
-        self._order: deque[tuple[int, int, str]] = deque()
-        self._keys: set[tuple[int, int, str]] = set()
+        self._keys = KeyMemory(size)
         self.size = size
         #: Frames recognised as repeats so far.
         self.repeats = 0
@@ -316,13 +335,9 @@ class RecentStamps:
         key = (int(header.stamp.sec), int(header.stamp.nanosec), str(header.frame_id))
         if key[0] == 0 and key[1] == 0:
             return False
-        if key in self._keys:
+        if self._keys.seen(key):
             self.repeats += 1
             return True
-        self._keys.add(key)
-        self._order.append(key)
-        while len(self._order) > self.size:
-            self._keys.discard(self._order.popleft())
         return False
 
     def skip_repeat(self, header: Any, logger: Any, what: str) -> bool:
@@ -519,6 +534,10 @@ def use_dds_profile() -> None:
         os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(DDS_PROFILE)
 
 
+#: Exit status of a node whose parameters are invalid (:func:`_run_nodes`): not respawned.
+_STATUS_BAD_PARAMETERS = 2
+
+
 def _run_nodes(
     argv: Sequence[str],
     factories: Sequence[Callable[[], Node]],
@@ -547,7 +566,7 @@ def _run_nodes(
         pass
     except GraphError as err:
         print(f"error: {err}", file=sys.stderr)
-        status = 2
+        status = _STATUS_BAD_PARAMETERS
     except RCLError:
         # SIGTERM shuts the context down under the executor's feet; that is a clean stop.
         if rclpy.ok():
@@ -710,8 +729,6 @@ def stop_processes(procs: Any, timeout: float = 5.0) -> dict[int, int | None]:
 #: :data:`RESPAWN_WINDOW_S` seconds (failing again at once) is given up on, and the graph stops.
 RESPAWN_LIMIT = 5
 RESPAWN_WINDOW_S = 60.0
-#: Exit status of a node whose parameters are invalid (:func:`_run_nodes`): not respawned.
-_STATUS_BAD_PARAMETERS = 2
 
 
 class RestartBudget:
@@ -1376,16 +1393,18 @@ def record_topics(
     use_dds_profile()
     rclpy.init(args=["armourcam-record", "--ros-args", *ros_args])
     node = rclpy.create_node("armourcam_record")
-    counts: dict[str, int] = dict.fromkeys((node.resolve_topic_name(t) for t in topics), 0)
+    names = [node.resolve_topic_name(t) for t in topics]
     stop = stop or threading.Event()
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     t_start = time.monotonic()
     t_end = None if duration is None else t_start + duration
     announced = False
+    written: dict[str, int] = {}  # full name -> messages written (the writer's own count)
     try:
         with bagio.BagWriter(out) as writer:
-            recorder = _Recorder(node, writer, counts, types or {})
+            written = writer.counts
+            recorder = _Recorder(node, writer, names, types or {})
             while not stop.is_set():
                 recorder.follow_publishers()
                 executor.spin_once(timeout_sec=0.1)
@@ -1405,7 +1424,7 @@ def record_topics(
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
-    return counts
+    return {t: written.get(t, 0) for t in names}
 
 
 #: Types whose publishers in the graph latch (RELIABLE + TRANSIENT_LOCAL): the record streams in
@@ -1451,21 +1470,18 @@ class _Recorder:
     """
 
     def __init__(
-        self, node: Node, writer: Any, counts: dict[str, int], types: Mapping[str, str]
+        self, node: Node, writer: Any, topics: Sequence[str], types: Mapping[str, str]
     ) -> None:
         from armourcam.bagio import normal_type
 
         self.node = node
         self.writer = writer
-        self.counts = counts  # full name -> messages written; updated in place
         known = {node.resolve_topic_name(t): normal_type(mt) for t, mt in types.items()}
-        self.types = {t: known[t] for t in counts if t in known}
+        self.types = {t: known[t] for t in topics if t in known}
         # Per topic, its subscriptions by (reliability, durability).
-        self.subs: dict[str, dict[tuple[Any, Any], Any]] = {t: {} for t in counts}
-        self._in_bag: set[str] = set()
+        self.subs: dict[str, dict[tuple[Any, Any], Any]] = {t: {} for t in topics}
         self._warned: set[tuple[str, str]] = set()
-        self._seen: deque[tuple[Any, ...]] = deque()
-        self._seen_set: set[tuple[Any, ...]] = set()
+        self._seen = KeyMemory(_SEEN_WINDOW)
         self._next_poll = 0.0
         self._ready_sub: Any = None
         for topic, msgtype in self.types.items():
@@ -1554,7 +1570,7 @@ class _Recorder:
 
     def _enter_bag(self, topic: str) -> None:
         """Add ``topic`` to the bag, with its discovered publishers' offered QoS."""
-        if topic in self._in_bag:
+        if topic in self.writer.counts:  # in the bag already
             return
         offered = [
             i.qos_profile
@@ -1562,7 +1578,6 @@ class _Recorder:
             if i.topic_type == self.types[topic]
         ]
         self.writer.add_topic(topic, self.types[topic], offered_qos=offered)
-        self._in_bag.add(topic)
 
     def _on_message(self, topic: str, raw: bytes, info: Mapping[str, Any]) -> None:
         if len(self.subs[topic]) > 1 and self._repeated(topic, raw, info):
@@ -1574,7 +1589,6 @@ class _Recorder:
         # Stored as received: the CDR bytes rosbag2 would store (a 6 MP frame is not decoded
         # and encoded again).
         self.writer.write_raw(topic, self.types[topic], raw, t_ns)
-        self.counts[topic] += 1
 
     def _repeated(self, topic: str, raw: bytes, info: Mapping[str, Any]) -> bool:
         """Whether this message came already through another subscription of ``topic``."""
@@ -1588,13 +1602,7 @@ class _Recorder:
             key = (topic, int(info["source_timestamp"]), len(raw))
         else:
             return False
-        if key in self._seen_set:
-            return True
-        self._seen.append(key)
-        self._seen_set.add(key)
-        if len(self._seen) > _SEEN_WINDOW:
-            self._seen_set.discard(self._seen.popleft())
-        return False
+        return self._seen.seen(key)
 
     def _warn_once(self, topic: str, text: str) -> None:
         if (topic, text) not in self._warned:

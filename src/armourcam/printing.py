@@ -466,6 +466,12 @@ def _fitted_text(x: float, y: float, size: float, s: str, max_width: float) -> s
     return _text(x, y, size, s)
 
 
+def _title_prefix(design_name: str, diameter_mm: float) -> str:
+    """What a sheet's title says before its codes."""
+    diameter = _num(diameter_mm)
+    return f"armourcam fiducial targets - design {design_name} - outer diameter {diameter} mm - "
+
+
 def sheet_title(
     design_name: str, diameter_mm: float, codes: Sequence[int], max_width: float
 ) -> str:
@@ -488,8 +494,7 @@ def sheet_title(
         (each target's label names its code). Should even that not fit, the caller shrinks the
         font (:func:`_fitted_text`).
     """
-    prefix = f"armourcam fiducial targets - design {design_name} - outer diameter "
-    prefix += f"{_num(diameter_mm)} mm - "
+    prefix = _title_prefix(design_name, diameter_mm)
     desc = describe_codes(codes)
     full = prefix + desc
     if text_width(full, TITLE_FONT_PT) <= max_width:
@@ -605,10 +610,7 @@ def target_sheet_pdf(
     thinnest = min_feature(design) * diameter_mm / 2.0
     line_w_pt = (A4_MM[0] - 2.0 * PAGE_MARGIN_MM) * PT_PER_MM
     title = sheet_title(design.name, diameter_mm, codes, line_w_pt)
-    full_title = (
-        f"armourcam fiducial targets - design {design.name} - outer diameter "
-        f"{_num(diameter_mm)} mm - {describe_codes(codes)}"
-    )
+    full_title = _title_prefix(design.name, diameter_mm) + describe_codes(codes)
     footer = (
         f"Print at 100 % (actual size, no fit to page). The bar is {_num(SCALE_BAR_MM)} mm long. "
         f"Vector artwork; thinnest feature {thinnest:.2f} mm = "

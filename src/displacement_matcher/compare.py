@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pose_estimator.camera import CameraModel
-from pose_estimator.fusion import FrameAgreement, Fusion
+from pose_estimator.fusion import FrameAgreement, Fusion, frame_agreement, fuse_frames
 from pose_estimator.types import FiducialPose
 
 from .damage import assess
@@ -154,7 +154,6 @@ def camera_motion(
         The current state's registration onto the baseline when it is ``moved`` (None
         otherwise, and when either state is empty).
     """
-    from pose_estimator.fusion import frame_agreement
 
     if not baseline or not current:
         return None
@@ -234,7 +233,6 @@ def state_from_images(
     """
     from fiducial_detector.detect import detect
     from pose_estimator.estimate import estimate
-    from pose_estimator.fusion import fuse_frames
     from pose_estimator.image_fit import refine_from_image
 
     frames = []
@@ -353,7 +351,8 @@ def check_unit_map(
         bodies[spec.unit] = body
         odd = [c for c in codes if c not in body]
         if odd:
-            ambiguous = len(cliques) > 1 or len(body) < 2
+            # Several largest cliques (two singletons at least where no pair fits): no body.
+            ambiguous = len(cliques) > 1
             misfits.append((spec, body, odd, ambiguous))
     out: list[UnitMapProblem] = []
     for spec, body, odd, ambiguous in misfits:

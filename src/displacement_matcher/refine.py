@@ -39,6 +39,7 @@ from .units import (
     UnitSpec,
     assign_units,
     branch_fit,
+    has_positions,
     learn_pair_distances,
     mirror_normals,
     still_in_place,
@@ -180,7 +181,7 @@ def match_units(
     # baseline, for the baseline's and the current state's grouping alike.
     learned: dict[tuple[int, int], float] = (
         learn_pair_distances(result.baseline, span)
-        if not explicit and not (template is not None and template.positions_mm)
+        if not explicit and not has_positions(template)
         else {}
     )
     groups = assign_units(
@@ -428,7 +429,7 @@ def assign_unit_groups(
     cols: list[int] = []
     costs: list[float] = []
     motions: list[NDArray[np.float64]] = []
-    misfits: list[float] = []
+    shares: list[list[tuple[int, int]]] = []
     for n, (_, ix) in enumerate(base_units):
         if len(ix) < 2 or n in still_units:
             continue
@@ -463,7 +464,7 @@ def assign_unit_groups(
             cols.append(c)
             costs.append(length - gate_mm * len(shared))
             motions.append(t)
-            misfits.append(_rigid_misfit(baseline, current, shared))
+            shares.append(shared)
     if not rows:
         return []
     ur = sorted(set(rows))
@@ -497,7 +498,7 @@ def assign_unit_groups(
                     tuple(base_units[ur[r]][1]),
                     motions[hit],
                     tuple(cur_groups[uc[c]]),
-                    misfits[hit],
+                    _rigid_misfit(baseline, current, shares[hit]),
                 )
             )
     return out

@@ -52,7 +52,7 @@ from pose_estimator.camera import CameraModel
 
 from .atomic import write_atomic
 from .errors import MatcherError
-from .types import DamageSummary, MatchResult, UnitMotion
+from .types import MATCH_LABELS, DamageSummary, MatchResult, UnitMotion
 
 GREEN = (60, 200, 60)  # BGR
 RED = (40, 40, 230)
@@ -246,6 +246,12 @@ _THRESHOLD_COLUMNS = (
 )
 
 
+def _thresholds(report: dict[str, Any]) -> dict[str, Any]:
+    """The thresholds of a :func:`report_dict` mapping's summary (empty for a failed run's
+    report, whose summary is empty)."""
+    return (report.get("summary") or {}).get("thresholds") or {}
+
+
 def units_csv(report: dict[str, Any]) -> bytes:
     """Per-unit CSV of a :func:`report_dict` mapping (columns: the module docstring)."""
     header = ["unit", "status", "displaced", "translation_x_mm", "translation_y_mm"]
@@ -253,8 +259,7 @@ def units_csv(report: dict[str, Any]) -> bytes:
     header += ["n_matched", "n_vanished", "n_appeared", "n_cross_code", "codes"]
     header += ["reference_before_x_mm", "reference_before_y_mm", "reference_before_z_mm"]
     header += [name for name, _ in _THRESHOLD_COLUMNS]
-    # A failed run's report has an empty summary: its threshold cells stay empty.
-    limits = (report.get("summary") or {}).get("thresholds") or {}
+    limits = _thresholds(report)  # a failed run's threshold cells stay empty
     thresholds = [limits.get(key) for _, key in _THRESHOLD_COLUMNS]
     rows = []
     for u in report["units"]:
@@ -346,7 +351,7 @@ def _draw_overlay(
 
     for label, before, after in vectors:
         a, b = px(before), px(after)
-        if label in _PAIRS and a is not None and b is not None:
+        if label in MATCH_LABELS and a is not None and b is not None:
             color = GREEN if label == "same_code" else RED
             cv2.circle(canvas, a, max(2, thickness + 1), color, -1, cv2.LINE_AA)
             if a != b:
@@ -356,9 +361,6 @@ def _draw_overlay(
         elif label == "appeared" and b is not None:
             cv2.circle(canvas, b, radius, BLUE, thickness, cv2.LINE_AA)
     return canvas
-
-
-_PAIRS = ("same_code", "cross_code")
 
 
 def magnitude_plot(
@@ -384,9 +386,9 @@ def magnitude_plot_from_report(
     report: dict[str, Any], *, size: tuple[int, int] = (960, 540)
 ) -> NDArray[np.uint8]:
     """:func:`magnitude_plot` of a :func:`report_dict` mapping (thresholds from its summary)."""
-    pairs = [f for f in report["fiducials"] if f["label"] in _PAIRS]
+    pairs = [f for f in report["fiducials"] if f["label"] in MATCH_LABELS]
     mags = [np.nan if f.get("distance_mm") is None else f["distance_mm"] for f in pairs]
-    t = (report.get("summary") or {}).get("thresholds")
+    t = _thresholds(report)
     limits = (float(t["displaced_mm"]), float(t["moved_mm"])) if t else None
     return _draw_magnitudes(mags, [f["label"] == "same_code" for f in pairs], limits, size)
 

@@ -17,6 +17,8 @@ from pose_estimator.types import FiducialPose
 
 Label = Literal["same_code", "cross_code", "vanished", "appeared"]
 LABELS: tuple[Label, ...] = ("same_code", "cross_code", "vanished", "appeared")
+#: The labels of a pair (a fiducial matched before and after).
+MATCH_LABELS: tuple[Label, ...] = ("same_code", "cross_code")
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,7 +80,7 @@ class Displacement:
     @property
     def is_match(self) -> bool:
         """True for a same-code or cross-code pair."""
-        return self.label in ("same_code", "cross_code")
+        return self.label in MATCH_LABELS
 
     @property
     def displacement_mm(self) -> NDArray[np.float64] | None:

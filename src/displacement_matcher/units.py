@@ -217,6 +217,12 @@ def load_unit_map(path: str | Path) -> UnitMap:
         raise MatcherError(f"unit map {path}: {err}") from err
 
 
+def has_positions(template: UnitSpec | None) -> bool:
+    """Whether a template gives its codes' positions on the unit (else the distances between
+    codes are learned: :func:`learn_pair_distances`)."""
+    return template is not None and bool(template.positions_mm)
+
+
 #: Widths (mm) of the distance windows :func:`learn_pair_distances` tries, narrowest first: pose
 #: noise spreads an exact template distance over about a millimetre; fiducials glued by hand, a
 #: few more.
@@ -325,7 +331,7 @@ def group_fiducials(
 
     pairs = cKDTree(pos).query_pairs(span_mm, output_type="ndarray")
     tdist: dict[tuple[int, int], float] = {}
-    if pair_distances and not (template is not None and template.positions_mm):
+    if pair_distances and not has_positions(template):
         tdist = {(int(a), int(b)): float(d) for (a, b), d in pair_distances.items()}
     if template is not None:
         for ca, cb in itertools.permutations(template.positions_mm, 2):
@@ -764,7 +770,7 @@ def assign_units(
         return list(by_unit.items()), unassigned
     template = unit_map.template if unit_map is not None else None
     sub = [base[i] for i in usable_b]
-    if pair_distances is None and not (template is not None and template.positions_mm):
+    if pair_distances is None and not has_positions(template):
         pair_distances = learn_pair_distances(sub, span)
     found = group_fiducials(
         sub, span_mm=span, template=template, tol_mm=rigid_tol_mm, pair_distances=pair_distances

@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -67,7 +68,7 @@ def fuse_poses(poses: Sequence[FiducialPose], *, gate: float = CHI2_3_999) -> Fi
     X = np.array([p.position_mm for p in poses], dtype=np.float64)
     C = np.array([p.covariance_mm2 for p in poses], dtype=np.float64)
     N = np.array([p.normal for p in poses], dtype=np.float64)
-    info = np.linalg.inv(C + np.eye(3) * 1e-12 * np.trace(C, axis1=1, axis2=2)[:, None, None])
+    info = _information(C)
     inlier = np.ones(len(poses), dtype=bool)
     # Start from the coordinate-wise median (breakdown point 1/2), then iterate weighted means.
     centre = np.median(X, axis=0)
@@ -439,17 +440,19 @@ def fuse_frames(
     consensus = tuple(f for f in seen if near[best, f])
 
     agreements = []
-    whole = _PoseArrays.of(fuse([lists[g] for g in consensus], **fuse_kw))
+    whole = fuse([lists[g] for g in consensus], **fuse_kw)
+    # The reference of the frames outside the consensus (there are some only if it is not all).
+    outside_ref = _PoseArrays.of(whole) if len(consensus) < n else None
     for f in range(n):
         others = tuple(g for g in consensus if g != f)
         if not others:
             agreements.append(_agreement(f, "agrees", (), len(lists[f]), 0))
             continue
-        ref = (
-            whole
-            if f not in consensus
-            else _PoseArrays.of(fuse([lists[g] for g in others], **fuse_kw))
-        )
+        if f in consensus:
+            ref = _PoseArrays.of(fuse([lists[g] for g in others], **fuse_kw))
+        else:
+            assert outside_ref is not None
+            ref = outside_ref
         agreements.append(judge(f, sets[f], len(lists[f]), ref, others))
 
     used = list(range(n))
@@ -459,50 +462,42 @@ def fuse_frames(
         used = [f for f in range(n) if agreements[f].verdict != "unmatched"] or list(consensus)
         aligned = tuple(f for f in used if agreements[f].verdict == "moved")
         inputs = [
-            _moved(lists[f], agreements[f].rotation, agreements[f].translation_mm)
+            moved_poses(lists[f], agreements[f].rotation, agreements[f].translation_mm)
             if f in aligned
             else lists[f]
             for f in used
         ]
-    return Fusion(
-        tuple(fuse(inputs, **fuse_kw)), tuple(agreements), consensus, tuple(used), aligned
-    )
+    # The consensus fusion already made is the result when every frame used is in it, as is.
+    poses = whole if used == list(consensus) and not aligned else fuse(inputs, **fuse_kw)
+    return Fusion(tuple(poses), tuple(agreements), consensus, tuple(used), aligned)
 
 
 def frame_agreement(
-    frame: Sequence[FiducialPose],
-    reference: Sequence[FiducialPose],
-    *,
-    search_mm: float = 15.0,
-    gate_mm: float = 3.0,
-    gate: float = CHI2_3_999,
-    moved_mm: float = 0.5,
-    warn_mm: float = 0.2,
-    min_shared: float = 0.5,
-    outlier_fraction: float = 0.1,
+    frame: Sequence[FiducialPose], reference: Sequence[FiducialPose]
 ) -> FrameAgreement:
     """How one pose set compares with a reference set of the same scene, as :func:`fuse_frames`
-    judges each frame (the same parameters): ``frame`` is frame 1, ``reference`` frame 0.
+    judges each frame with its default parameters: ``frame`` is frame 1, ``reference`` frame 0.
 
     Without fusing anything: the check of a camera that moved between two states of a scene
     most of which stayed still (:func:`displacement_matcher.compare.camera_motion`).
     """
-    judge = _Criteria(search_mm, gate_mm, gate, moved_mm, warn_mm, min_shared, outlier_fraction)
+    judge = _Criteria()
     poses = list(frame)
     return judge(1, _PoseArrays.of(poses), len(poses), _PoseArrays.of(reference), (0,))
 
 
 @dataclass(frozen=True, slots=True)
 class _Criteria:
-    """The registration and the verdict rules of :func:`fuse_frames` (its parameters)."""
+    """The registration and the verdict rules of :func:`fuse_frames` (its parameters; by default
+    its defaults)."""
 
-    search_mm: float
-    gate_mm: float
-    gate: float
-    moved_mm: float
-    warn_mm: float
-    min_shared: float
-    outlier_fraction: float
+    search_mm: float = 15.0
+    gate_mm: float = 3.0
+    gate: float = CHI2_3_999
+    moved_mm: float = 0.5
+    warn_mm: float = 0.2
+    min_shared: float = 0.5
+    outlier_fraction: float = 0.1
 
     def register(self, a: _PoseArrays, b: _PoseArrays) -> _Registration | None:
         return _register(a, b, search_mm=self.search_mm, gate_mm=self.gate_mm, gate=self.gate)
@@ -609,7 +604,7 @@ def _agreement(
     )
 
 
-def _moved(poses: Sequence[FiducialPose], R: F64, t: F64) -> list[FiducialPose]:
+def moved_poses(poses: Sequence[FiducialPose], R: F64, t: F64) -> list[FiducialPose]:
     """``poses`` moved by ``x -> R @ x + t`` (normals and covariances turned with them)."""
     return [
         FiducialPose(
@@ -660,23 +655,6 @@ def _skew(v: F64) -> F64:
     return np.stack([np.stack([z, -w, y], 1), np.stack([w, z, -x], 1), np.stack([-y, x, z], 1)], 1)
 
 
-def _rotation(w: F64) -> F64:
-    """Rotation matrix of the rotation vector ``w`` (Rodrigues)."""
-    angle = float(np.linalg.norm(w))
-    if angle < 1e-15:
-        return np.eye(3)
-    K = _skew((w / angle)[None])[0]
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
-
-
-def _rotation_vector(R: F64) -> F64:
-    """Rotation vector of the rotation matrix ``R`` (angles below pi)."""
-    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    s = float(np.linalg.norm(v))
-    angle = float(np.arctan2(s, (np.trace(R) - 1.0) / 2.0))
-    return v if s < 1e-15 else v * (angle / s)
-
-
 def _motion_system(D: F64, r: F64, W: F64) -> tuple[F64, F64]:
     """Normal equations of the small motion ``r ~ w x D + tau`` (unknowns ``(w, tau)``),
     weighted by ``W`` (``(k, 3, 3)``): ``N (6, 6)`` and ``g (6,)``."""
@@ -687,7 +665,8 @@ def _motion_system(D: F64, r: F64, W: F64) -> tuple[F64, F64]:
 
 
 def _information(C: F64) -> F64:
-    """Inverses of covariances ``(k, 3, 3)``, regularised as in :func:`fuse_poses`."""
+    """Inverses of covariances ``(k, 3, 3)``, regularised (a trace-relative ridge) so that
+    degenerate ones still invert."""
     tr = np.trace(C, axis1=1, axis2=2)[:, None, None]
     return np.asarray(np.linalg.inv(C + np.eye(3) * 1e-12 * tr), dtype=np.float64)
 
@@ -705,37 +684,26 @@ def _register(
     t = np.median(b.X[ib] - a.X[ia], axis=0)
     radius = max(gate_mm, 0.5 * search_mm)
     for it in range(30):
-        Y = a.X @ R.T + t
-        ia, ib = _pairs(a.codes, Y, b.codes, b.X, radius, mutual=True)
+        Y, ia, ib, r, W, m2 = _paired(a, b, R, t, radius)
         if not len(ia):
             return None
-        r = b.X[ib] - Y[ia]
-        W = _information(R @ a.C[ia] @ R.T + b.C[ib])
-        use = np.einsum("ki,kij,kj->k", r, W, r) <= gate
-        if it == 0 or use.sum() < min(3, len(ia)):
-            use[:] = True
+        use = _within(m2, gate) if it else np.ones(len(ia), dtype=bool)
         c = Y[ia][use].mean(axis=0)
         p = _solve_motion(*_motion_system(Y[ia][use] - c, r[use], W[use]))
-        dR = _rotation(p[:3])
+        dR = np.asarray(cv2.Rodrigues(p[:3])[0], dtype=np.float64)
         R, t = dR @ R, dR @ (t - c) + c + p[3:]
         if radius <= gate_mm and np.linalg.norm(p[:3]) < 1e-9 and np.linalg.norm(p[3:]) < 1e-7:
             break
         radius = max(gate_mm, 0.5 * radius)
-    Y = a.X @ R.T + t
-    ia, ib = _pairs(a.codes, Y, b.codes, b.X, gate_mm, mutual=True)
+    Y, ia, ib, r, W, m2 = _paired(a, b, R, t, gate_mm)
     if not len(ia):
         return None
-    r = b.X[ib] - Y[ia]
-    W = _information(R @ a.C[ia] @ R.T + b.C[ib])
-    m2 = np.einsum("ki,kij,kj->k", r, W, r)
-    inlier = m2 <= gate
-    if inlier.sum() < min(3, len(ia)):
-        inlier[:] = True
+    inlier = _within(m2, gate)
     X = a.X[ia][inlier]
     centre = X.mean(axis=0)
     # Wald test of the whole motion, linearised about no motion at the shared fiducials.
     N, _ = _motion_system(X - centre, r[inlier], W[inlier])
-    p = np.concatenate([_rotation_vector(R), R @ centre + t - centre])
+    p = np.concatenate([cv2.Rodrigues(R)[0].ravel(), R @ centre + t - centre])
     dof = 6 if len(X) >= 3 else 3
     if dof == 3:
         N[:3, :] = N[:, :3] = 0.0
@@ -751,6 +719,27 @@ def _register(
         chi2=float(np.sum(m2)),
         n_outliers=int(np.sum(m2 > gate)),
     )
+
+
+def _paired(
+    a: _PoseArrays, b: _PoseArrays, R: F64, t: F64, radius: float
+) -> tuple[F64, NDArray[np.intp], NDArray[np.intp], F64, F64, F64]:
+    """``a`` moved by ``(R, t)`` (``Y``) paired with ``b`` (mutual nearest of each code within
+    ``radius``: indices ``ia``, ``ib``), the pairs' residuals ``r``, information ``W`` and squared
+    Mahalanobis distances ``m2``."""
+    Y = a.X @ R.T + t
+    ia, ib = _pairs(a.codes, Y, b.codes, b.X, radius, mutual=True)
+    r = b.X[ib] - Y[ia]
+    W = _information(R @ a.C[ia] @ R.T + b.C[ib])
+    return Y, ia, ib, r, W, np.einsum("ki,kij,kj->k", r, W, r)
+
+
+def _within(m2: F64, gate: float) -> NDArray[np.bool_]:
+    """Pairs within ``gate``; all of them when fewer than three (or than all) are."""
+    use = m2 <= gate
+    if use.sum() < min(3, len(m2)):
+        use[:] = True
+    return use
 
 
 def _solve_motion(N: F64, g: F64) -> F64:

@@ -240,10 +240,6 @@ class PoseEstimatorNode(Node):
             self.problems.report("warn", text)
             self.get_logger().warning(text)
 
-    def _diameter(self) -> float:
-        value = self.get_parameter("diameter_mm").value
-        return float(value) if value else self.config.diameter_mm
-
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
             camera = CameraModel.from_camera_info(
@@ -282,7 +278,7 @@ class PoseEstimatorNode(Node):
         t0 = time.perf_counter()
         try:
             recs = records.from_pointcloud2(msg, records.DETECTION)
-            rows = records.estimate_pose_records(recs, self.camera, self._diameter())
+            rows = records.estimate_pose_records(recs, self.camera, self._diameter_mm)
         except Exception as err:
             self.dropped += 1
             kind = "" if isinstance(err, ValueError) else f"{type(err).__name__}: "

@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from jpeg_damage import scan_start, with_comment, without_scan
 
 from armourcam.cli import main
 from armourcam.imageio import ImageReadError, read_image
@@ -221,11 +222,8 @@ def test_truncated_jpeg_files_get_one_line_errors(
     ``armourcam detect`` too, naming the file; the good file is still processed."""
     ok, buf = cv2.imencode(".jpg", scene_image)
     assert ok
-    jpeg = buf.tobytes()
-    jpeg = jpeg[:2] + b"\xff\xfe\x00\x08ab\xff\xd9cd" + jpeg[2:]
-    sos = jpeg.index(b"\xff\xda")
-    scan = sos + 2 + int.from_bytes(jpeg[sos + 2 : sos + 4], "big")
-    files = {"cut.jpg": jpeg[: scan + 200], "noscan.jpg": jpeg[:scan] + b"\xff\xd9"}
+    jpeg = with_comment(buf.tobytes(), b"ab\xff\xd9cd")
+    files = {"cut.jpg": jpeg[: scan_start(jpeg) + 200], "noscan.jpg": without_scan(jpeg)}
     for name, data in files.items():
         (tmp_path / name).write_bytes(data)
     good = tmp_path / "good.jpg"

@@ -10,6 +10,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+from jpeg_damage import scan_start, with_comment, without_scan
 
 from armourcam import image_codec as ic
 from armourcam.image_codec import ImageCodecError
@@ -258,18 +259,6 @@ def test_bad_compressed_images_are_refused() -> None:
         ic.decode(SimpleNamespace(format="jpeg", data=garbled))
 
 
-def _with_comment(jpeg: bytes, text: bytes) -> bytes:
-    """``jpeg`` with a COM segment holding ``text`` right after SOI (APPn/COM bytes are free:
-    an EXIF thumbnail's own end-of-image marker is the common case)."""
-    return jpeg[:2] + b"\xff\xfe" + (2 + len(text)).to_bytes(2, "big") + text + jpeg[2:]
-
-
-def _scan_start(jpeg: bytes) -> int:
-    """Offset of the first byte of entropy-coded data (after the SOS segment)."""
-    sos = jpeg.index(b"\xff\xda")
-    return sos + 2 + int.from_bytes(jpeg[sos + 2 : sos + 4], "big")
-
-
 def test_damaged_jpegs_that_libjpeg_would_still_decode_are_refused() -> None:
     """Found from the marker structure (thread-safe, no capture of libjpeg's stderr): a frame
     cut short whose last 4 KB still hold an ``FF D9`` (inside a comment/EXIF segment: it used
@@ -278,15 +267,15 @@ def test_damaged_jpegs_that_libjpeg_would_still_decode_are_refused() -> None:
     JPEG data: premature end of data segment" on descriptor 2 only), is refused."""
     rng = np.random.default_rng(5)
     grey = rng.integers(0, 256, size=(40, 48)).astype(np.uint8)
-    jpeg = _with_comment(ic.compressed_to_msg_fields(grey, "jpeg")["data"], b"ab\xff\xd9cd")
+    jpeg = with_comment(ic.compressed_to_msg_fields(grey, "jpeg")["data"], b"ab\xff\xd9cd")
     assert len(jpeg) < 4096 and ic.jpeg_damage(jpeg) is None
-    scan = _scan_start(jpeg)
+    scan = scan_start(jpeg)
     cut = jpeg[: (scan + len(jpeg)) // 2]
     with pytest.raises(
         ImageCodecError, match=r"corrupt JPEG \(\d+ bytes\): no end-of-image .*truncated"
     ):
         ic.decode(SimpleNamespace(format="jpeg", data=cut))
-    no_scan = jpeg[:scan] + b"\xff\xd9"
+    no_scan = without_scan(jpeg)
     with pytest.raises(
         ImageCodecError, match=r"corrupt JPEG .* no image data .* cannot be decoded"
     ):
@@ -318,7 +307,7 @@ def test_whole_jpegs_pass_the_structure_check(params: list[int]) -> None:
     expected = ic.decode(SimpleNamespace(format="jpeg", data=jpeg))
     for variant in (
         jpeg,
-        _with_comment(jpeg, b"\xff\xd9\xff\xda\x00\x08"),
+        with_comment(jpeg, b"\xff\xd9\xff\xda\x00\x08"),
         jpeg + bytes(100),
         jpeg + b"\xff\xd8 stale bytes",
     ):

@@ -11,6 +11,7 @@ from armourcam.field import Field, make_field
 from displacement_matcher.compare import check_unit_map, compare_poses
 from displacement_matcher.damage import thresholds
 from displacement_matcher.units import parse_unit_map
+from pose_estimator.fusion import moved_poses
 from pose_estimator.types import FiducialPose
 
 
@@ -118,13 +119,7 @@ def test_a_camera_moved_between_the_states_is_named() -> None:
     assert compare_poses(before, after, limits).camera_motion is None
     turn, _ = cv2.Rodrigues(np.array([0.0, np.radians(0.05), 0.0]))
     shift = np.array([1.0, -0.5, 0.0])
-    bumped = [
-        FiducialPose(
-            p.code, turn @ p.position_mm + shift, turn @ p.normal, turn @ p.covariance_mm2 @ turn.T
-        )
-        for p in after
-    ]
-    cmp = compare_poses(before, bumped, limits)
+    cmp = compare_poses(before, moved_poses(after, np.asarray(turn), shift), limits)
     assert cmp.camera_motion is not None
     assert cmp.warnings
     assert cmp.warnings[0].startswith("camera moved between the before and after states?")

@@ -16,6 +16,7 @@ from displacement_matcher.units import (
     parse_unit_map,
     unit_motions,
 )
+from pose_estimator.fusion import moved_poses
 from pose_estimator.types import FiducialPose
 
 
@@ -322,13 +323,14 @@ def test_a_cube_spinning_about_its_face_normal_is_fitted_rigidly() -> None:
     spin = _rot([0.0, 0.0, 1.0], 40.0)
     shift = np.array([2.0, 1.0, 0.0])
     face = np.array([0.0, 0.0, -1.0])  # the face looks at the camera
-
-    def poses(R: np.ndarray, t: np.ndarray) -> list[FiducialPose]:
-        cov = np.diag([0.01, 0.01, 0.09])
-        return [FiducialPose(c, R @ p + t, R @ face, cov) for c, p in local.items()]
+    cov = np.diag([0.01, 0.01, 0.09])  # the spin about z leaves it as it is
+    faces = [FiducialPose(c, p, face, cov) for c, p in local.items()]
 
     an = match_units(
-        poses(np.eye(3), origin), poses(spin, origin + shift), unit_map=umap, gate_mm=50.0
+        moved_poses(faces, np.eye(3), origin),
+        moved_poses(faces, spin, origin + shift),
+        unit_map=umap,
+        gate_mm=50.0,
     )
     (unit,) = an.units
     assert unit.method == "rigid" and unit.n_matched == 3, (unit.method, unit.n_matched)

@@ -8,11 +8,11 @@ group) by the fixture's finaliser, whatever the test's outcome.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from rosutil import Nodes, Probe
+from rosutil import Nodes, Probe, Recorder
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -41,3 +41,19 @@ def probe() -> Iterator[Probe]:
         yield p
     finally:
         p.close()
+
+
+@pytest.fixture()
+def recorder() -> Iterator[Callable[..., Recorder]]:
+    """Starts recorders; each is stopped after the test whatever its outcome."""
+    started: list[Recorder] = []
+
+    def start(bag: Path, *args: str) -> Recorder:
+        started.append(Recorder(bag, *args))
+        return started[-1]
+
+    try:
+        yield start
+    finally:
+        for rec in started:
+            rec.close()

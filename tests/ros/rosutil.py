@@ -1,4 +1,5 @@
-"""Helpers of the DDS tests: an isolated domain, node processes, a probe node, the CLI.
+"""Helpers of the DDS tests: an isolated domain, node processes, a probe node, the CLI (and its
+recorder).
 
 Importing this module sets ``ROS_DOMAIN_ID`` (unique to the test run, derived from the pid, in
 1..101) and ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` for this process and every child.
@@ -9,6 +10,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Callable
@@ -16,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 
 DOMAIN_ID = 1 + os.getpid() % 101
 os.environ["ROS_DOMAIN_ID"] = str(DOMAIN_ID)
@@ -30,6 +33,7 @@ with warnings.catch_warnings():
     import rosidl_generator_py  # noqa: F401
 
 from armourcam import graph  # noqa: E402  (after the environment is set)
+from pose_estimator.camera import CameraModel  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -94,6 +98,19 @@ class Nodes:
         self.procs.clear()
 
 
+def status_values(status: Any) -> dict[str, str]:
+    """The key/value pairs of one DiagnosticStatus."""
+    return {kv.key: kv.value for kv in status.values}
+
+
+class Statuses(list[Any]):
+    """DiagnosticStatus messages of one node in arrival order (see :meth:`Probe.statuses`)."""
+
+    def values(self) -> dict[str, str]:
+        """The key/value pairs of the latest status (empty before the first)."""
+        return status_values(self[-1]) if self else {}
+
+
 class Probe:
     """An rclpy node in the test process with its own context."""
 
@@ -119,10 +136,58 @@ class Probe:
     def spin_for(self, seconds: float) -> None:
         self.spin_until(lambda: False, seconds)
 
+    def call(self, srv_type: Any, service: str, request: Any) -> Any:
+        """One call of ``service``; returns the response (20 s to appear, 10 s to answer)."""
+        client = self.node.create_client(srv_type, service)
+        try:
+            assert self.spin_until(client.service_is_ready, 20.0), service
+            future = client.call_async(request)
+            assert self.spin_until(future.done, 10.0), service
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def get_parameter(self, node: str, name: str) -> Any:
+        """The ParameterValue message of parameter ``name`` of fully qualified ``node``."""
+        from rcl_interfaces.srv import GetParameters
+
+        request = GetParameters.Request(names=[name])
+        (value,) = self.call(GetParameters, f"{node}/get_parameters", request).values
+        return value
+
+    def set_parameter(self, node: str, name: str, value: Any) -> Any:
+        """One SetParameters call (what ``ros2 param set`` does); returns its result."""
+        from rcl_interfaces.msg import Parameter as ParameterMsg
+        from rcl_interfaces.srv import SetParameters
+
+        request = SetParameters.Request(parameters=[ParameterMsg(name=name, value=value)])
+        (result,) = self.call(SetParameters, f"{node}/set_parameters", request).results
+        return result
+
+    def statuses(self, node: str) -> Statuses:
+        """The /diagnostics statuses whose name contains ``node``, appended as they arrive."""
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        out = Statuses()
+        self.node.create_subscription(
+            DiagnosticArray,
+            "/diagnostics",
+            lambda m: out.extend(s for s in m.status if node in s.name),
+            50,
+        )
+        return out
+
     def close(self) -> None:
         self.executor.shutdown()
         self.node.destroy_node()
         self.context.try_shutdown()
+
+
+def ideal_calibration(tmp: Path) -> Path:
+    """``tmp/camera.yaml``: an ideal 640x480 camera, 500 px focal length."""
+    path = tmp / "camera.yaml"
+    path.write_text(yaml.safe_dump(CameraModel.ideal(640, 480, 500.0).to_dict()))
+    return path
 
 
 def start_armourcam(*args: str, **popen: Any) -> subprocess.Popen[Any]:
@@ -148,3 +213,58 @@ def armourcam(*args: str, timeout: float = 90.0) -> subprocess.CompletedProcess[
         check=False,
         start_new_session=True,
     )
+
+
+class Recorder:
+    """``armourcam record --out BAG ARGS...`` in its own process group; stderr read as it comes."""
+
+    def __init__(self, bag: Path, *args: str) -> None:
+        self.bag = bag
+        self.proc = start_armourcam(
+            "record",
+            "--out",
+            str(bag),
+            *args,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self.lines.append(line)
+
+    def wait_ready(self, timeout: float = 30.0) -> bool:
+        """Wait for the ``armourcam record: ready`` line (False on timeout or exit)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            if any(line.startswith("armourcam record: ready") for line in self.lines):
+                return True
+            if self.proc.poll() is not None or time.monotonic() >= deadline:
+                return False
+            time.sleep(0.05)
+
+    def stop(self) -> str:
+        """Stop it as Ctrl-C does (idempotent); returns its stdout (the counts) and checks that
+        it ended cleanly."""
+        graph.stop_processes([self.proc])
+        out = ""
+        if self.proc.stdout is not None and not self.proc.stdout.closed:
+            out = self.proc.stdout.read()
+            self.proc.stdout.close()
+        self._reader.join(5.0)
+        if self.proc.stderr is not None:
+            self.proc.stderr.close()
+        assert self.proc.returncode == 0, "".join(self.lines)
+        return out
+
+    def close(self) -> None:
+        """Stop it whatever its state and close its pipes (the fixture's finaliser)."""
+        graph.stop_processes([self.proc])
+        for pipe in (self.proc.stdout, self.proc.stderr):
+            if pipe is not None:
+                pipe.close()

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from rosutil import ideal_calibration
 
 pytestmark = pytest.mark.ros
 
@@ -232,30 +233,17 @@ def test_a_stalled_input_turns_the_status_warn_until_frames_come_again(
     """A camera that stops used to leave every node OK. Each node reports the age of its last
     input frame and is WARN, saying so, once none came for ``stale_after_s``; before the first
     frame it reports what it did before (an idle rig is not a fault)."""
-    import yaml
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-
-    from pose_estimator.camera import CameraModel
+    from diagnostic_msgs.msg import DiagnosticStatus
 
     params: dict[str, Any] = {"stale_after_s": 1.5, "diagnostics_period_s": 0.2}
     if node == "pose_estimator":
-        calibration = tmp_path / "camera.yaml"
-        calibration.write_text(yaml.safe_dump(CameraModel.ideal(640, 480, 500.0).to_dict()))
-        params["calibration_file"] = str(calibration)
+        params["calibration_file"] = str(ideal_calibration(tmp_path))
     if node == "displacement_matcher":
         params |= {"data_dir": str(tmp_path / "data"), "baseline_frames": 2}
-    statuses: list[Any] = []
-    probe.node.create_subscription(
-        DiagnosticArray,
-        "/diagnostics",
-        lambda m: statuses.extend(s for s in m.status if node in s.name),
-        50,
-    )
+    statuses = probe.statuses(node)
+    values = statuses.values  # the latest status's
     pub, make_frame = _input_publisher(probe, node)
     nodes.start(node, params=params)
-
-    def values() -> dict[str, str]:
-        return {kv.key: kv.value for kv in statuses[-1].values} if statuses else {}
 
     def latest(pred: Any, timeout: float) -> bool:
         return probe.spin_until(lambda: statuses and pred(statuses[-1], values()), timeout)

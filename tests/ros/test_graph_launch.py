@@ -74,24 +74,16 @@ def test_nodes_end_when_the_launcher_is_killed(tmp_path: Path) -> None:
     """``armourcam graph`` killed with SIGKILL (no chance to stop its nodes, which run in their
     own sessions) still leaves no node running: each asked the kernel to end it with its
     launcher."""
-    import signal
-    import subprocess
-
-    launcher = start_armourcam(
-        "graph",
-        "--log-dir",
-        str(tmp_path),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    launcher = _start_launcher(tmp_path)
     kids: list[int] = []
     try:
+        kids += _wait_for_nodes(launcher).values()
+        logs = [tmp_path / f"{n}.log" for n in graph.NODE_NAMES]
         deadline = time.monotonic() + 30.0
-        while time.monotonic() < deadline:
-            kids = _children(launcher.pid)
-            logs = [tmp_path / f"{n}.log" for n in graph.NODE_NAMES]
-            if len(kids) == 3 and all(f.exists() and f.stat().st_size for f in logs):
-                break  # every node has started and logged its first line
+        # Until every node has started and logged its first line.
+        while not all(f.exists() and f.stat().st_size for f in logs):
+            if time.monotonic() > deadline:
+                break
             time.sleep(0.1)
         assert len(kids) == 3, kids
         launcher.kill()
@@ -101,12 +93,7 @@ def test_nodes_end_when_the_launcher_is_killed(tmp_path: Path) -> None:
             time.sleep(0.1)
         assert all(_gone(k) for k in kids), [k for k in kids if not _gone(k)]
     finally:
-        for k in kids:
-            if not _gone(k):
-                os.killpg(k, signal.SIGKILL)
-        if launcher.poll() is None:
-            launcher.kill()
-            launcher.wait(5.0)
+        _end(launcher, kids)
 
 
 # ---------------------------------------------------------------------- respawn

@@ -7,96 +7,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rosutil import Nodes, Probe
+from matcherutil import Hall, Latched, field
+from rosutil import Nodes, Probe, status_values
 
-from armourcam import records
-from armourcam.graph import event_qos, latched_qos, record_qos
 from displacement_matcher.session import SESSION_STATE_FILE
-from pose_estimator.types import FiducialPose
-
-POSES = "/armourcam/poses"
-
-
-def field(n_units: int = 6) -> np.ndarray:
-    """True fiducial centres (mm) of a small field 700 mm away: units of 4 fiducials (codes 0-3,
-    9 mm apart on the unit), units 45 mm apart; fiducial ``i`` is on unit ``i // 4``."""
-    offsets = np.array([[0.0, 0.0, 0.0], [9.0, 0.0, 2.0], [0.0, 9.0, -2.0], [9.0, 9.0, 0.0]])
-    centres = np.array([(u % 3, u // 3, 0.0) for u in range(n_units)]) * 45.0
-    centres += [-45.0, -20.0, 700.0]
-    return (centres[:, None, :] + offsets[None]).reshape(-1, 3)
-
-
-def cloud(node: Any, truth: np.ndarray, rng: np.random.Generator) -> Any:
-    """A FiducialPoseRecord cloud of one noisy frame, stamped now."""
-    from sensor_msgs.msg import PointCloud2, PointField
-    from std_msgs.msg import Header
-
-    cov = np.diag([0.02, 0.02, 0.1]) ** 2
-    poses = [
-        FiducialPose(i % 4, p + rng.normal(0, [0.02, 0.02, 0.1]), np.array([0, 0, -1.0]), cov)
-        for i, p in enumerate(truth)
-    ]
-    header = Header(frame_id="cam")
-    header.stamp = node.get_clock().now().to_msg()
-    rows = records.poses_to_records(poses)
-    return records.to_pointcloud2(PointCloud2, PointField, header, records.POSE, rows)
-
-
-class Hall:
-    """The hall's automation and a camera feeding pose frames, published from the probe."""
-
-    def __init__(self, probe: Probe) -> None:
-        from sensor_msgs.msg import PointCloud2
-        from std_msgs.msg import Bool, String
-
-        self.probe = probe
-        n = probe.node
-        self.poses = n.create_publisher(PointCloud2, POSES, record_qos("reliable", 50))
-        self.active = n.create_publisher(Bool, "/hall/run_active", event_qos())
-        self.run_id = n.create_publisher(String, "/hall/run_id", event_qos())
-        self.rng = np.random.default_rng(5)
-
-    def wait_matched(self) -> bool:
-        return self.probe.spin_until(lambda: self.poses.get_subscription_count() > 0, 20.0)
-
-    def frames(self, truth: np.ndarray, k: int) -> None:
-        for _ in range(k):
-            self.poses.publish(cloud(self.probe.node, truth, self.rng))
-            self.probe.spin_for(0.05)
-
-    def run(self, run_id: str, after: np.ndarray, settle: int = 3) -> None:
-        from std_msgs.msg import Bool, String
-
-        self.run_id.publish(String(data=run_id))
-        self.active.publish(Bool(data=True))
-        self.probe.spin_for(0.3)
-        self.active.publish(Bool(data=False))
-        self.probe.spin_for(0.3)
-        self.frames(after, settle)
-
-
-class Latched:
-    """A late subscriber to the matcher's latched outputs."""
-
-    def __init__(self, probe: Probe) -> None:
-        from sensor_msgs.msg import PointCloud2
-        from std_msgs.msg import String
-        from visualization_msgs.msg import MarkerArray
-
-        self.reports: list[dict[str, Any]] = []
-        self.markers: list[Any] = []
-        self.baselines: list[Any] = []
-        n = probe.node
-        n.create_subscription(
-            String,
-            "/armourcam/report",
-            lambda m: self.reports.append(json.loads(m.data)),
-            latched_qos(),
-        )
-        n.create_subscription(MarkerArray, "/armourcam/markers", self.markers.append, latched_qos())
-        n.create_subscription(
-            PointCloud2, "/armourcam/baseline", self.baselines.append, latched_qos()
-        )
 
 
 def matcher_params(data_dir: Path) -> dict[str, Any]:
@@ -229,17 +143,12 @@ def test_a_data_dir_that_fails_mid_session_loses_nothing_and_the_node_lives_on(
     back the next save writes them all."""
     import shutil
 
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from diagnostic_msgs.msg import DiagnosticStatus
 
     data = tmp_path / "data"
     hall, truth0 = _matcher_with_baseline(nodes, probe, data)
     assert probe.spin_until(lambda: (data / "baseline.json").exists(), 20.0)
-    statuses: list[Any] = []
-
-    def on_diag(msg: Any) -> None:
-        statuses.extend(s for s in msg.status if s.name == "/displacement_matcher: armourcam")
-
-    probe.node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+    statuses = probe.statuses("/displacement_matcher: armourcam")
     late = Latched(probe)
     shutil.rmtree(data)
     data.write_text("not a directory")
@@ -251,7 +160,7 @@ def test_a_data_dir_that_fails_mid_session_loses_nothing_and_the_node_lives_on(
     )
 
     def unsaved(status: Any) -> int:
-        return int({kv.key: kv.value for kv in status.values}.get("unsaved_files", 0))
+        return int(status_values(status).get("unsaved_files", 0))
 
     # The status published before the run completed (its start and stop could not save
     # session.json) may still be the latest when the report arrives: wait for the one after.

@@ -9,13 +9,13 @@ everything after ``--ros-args`` to rclpy (graph: to every node).
 from __future__ import annotations
 
 import subprocess
-import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from rosutil import Nodes, Probe, armourcam, start_armourcam
+from rosutil import Nodes, Probe, Recorder, armourcam, start_armourcam
 
 from armourcam import bagio, graph, image_codec
 from armourcam.cli import build_parser
@@ -39,22 +39,6 @@ def _wait_nodes(probe: Probe, ns: str, names: tuple[str, ...], timeout: float = 
         return all((n, ns) in probe.node.get_node_names_and_namespaces() for n in names)
 
     return probe.spin_until(there, timeout)
-
-
-def _get_parameter(probe: Probe, node: str, name: str) -> Any:
-    """The value of parameter ``name`` of fully qualified ``node`` (GetParameters service)."""
-    from rcl_interfaces.srv import GetParameters
-    from rclpy.parameter import parameter_value_to_python
-
-    client = probe.node.create_client(GetParameters, f"{node}/get_parameters")
-    try:
-        assert probe.spin_until(lambda: client.service_is_ready(), 20.0), node
-        future = client.call_async(GetParameters.Request(names=[name]))
-        assert probe.spin_until(future.done, 10.0), node
-        (value,) = future.result().values  # type: ignore[union-attr]
-        return parameter_value_to_python(value)
-    finally:
-        probe.node.destroy_client(client)
 
 
 def test_nodes_in_a_namespace_use_it_for_every_topic_and_status_name(
@@ -145,6 +129,8 @@ def test_compressed_input_follows_the_namespace_and_a_relative_remap(
 
 @pytest.mark.parametrize("mode", [[], ["--one-process"]], ids=["processes", "one-process"])
 def test_graph_hands_ros_args_to_every_node(probe: Probe, tmp_path: Path, mode: list[str]) -> None:
+    from rclpy.parameter import parameter_value_to_python as value
+
     ns = "/cell_ns3"
     data = tmp_path / "data"
     launcher = start_armourcam(
@@ -165,8 +151,8 @@ def test_graph_hands_ros_args_to_every_node(probe: Probe, tmp_path: Path, mode: 
     try:
         found = _wait_nodes(probe, ns, graph.NODE_NAMES)
         assert found, (launcher.poll(), probe.node.get_node_names_and_namespaces())
-        assert _get_parameter(probe, f"{ns}/pose_estimator", "diameter_mm") == 10.0
-        assert _get_parameter(probe, f"{ns}/displacement_matcher", "data_dir") == str(data)
+        assert value(probe.get_parameter(f"{ns}/pose_estimator", "diameter_mm")) == 10.0
+        assert value(probe.get_parameter(f"{ns}/displacement_matcher", "data_dir")) == str(data)
     finally:
         graph.stop_processes([launcher])
         _, err = launcher.communicate(timeout=10.0)
@@ -244,7 +230,9 @@ def test_replay_into_a_namespace_feeds_a_namespaced_graph(
     assert probe.spin_until(lambda: run_ids == ["wave-1"], 10.0), run_ids
 
 
-def test_record_in_a_namespace_records_the_cells_topics(probe: Probe, tmp_path: Path) -> None:
+def test_record_in_a_namespace_records_the_cells_topics(
+    probe: Probe, tmp_path: Path, recorder: Callable[..., Recorder]
+) -> None:
     """``record --ros-args -r __ns:=/cellX`` records the cell's outputs (default list) under
     their full names, and ``/diagnostics`` as it is."""
     from std_msgs.msg import String
@@ -255,27 +243,11 @@ def test_record_in_a_namespace_records_the_cells_topics(probe: Probe, tmp_path: 
     report.publish(String(data='{"run": 1}'))
     root.publish(String(data='{"run": "other cell"}'))
     bag = tmp_path / "bag"
-    proc = start_armourcam(
-        "record",
-        "--out",
-        str(bag),
-        "--duration",
-        "4",
-        "--ros-args",
-        "-r",
-        f"__ns:={ns}",
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        deadline = time.monotonic() + 60.0
-        while proc.poll() is None and time.monotonic() < deadline:
-            probe.spin_for(0.1)
-        stdout, stderr = proc.communicate(timeout=10.0)
-    finally:
-        graph.stop_processes([proc])
-    assert proc.returncode == 0, stderr
+    rec = recorder(bag, "--duration", "4", "--ros-args", "-r", f"__ns:={ns}")
+    probe.spin_until(lambda: rec.proc.poll() is not None, 60.0)
+    rec.proc.wait(10.0)  # ends by itself (--duration)
+    stdout = rec.stop()
+    assert rec.proc.returncode == 0, "".join(rec.lines)
     assert f"{ns}/armourcam/report: 1" in stdout, stdout
     with bagio.open_bag(bag) as b:
         assert set(b.topics) == {f"{ns}/armourcam/report"}

@@ -7,87 +7,18 @@ hall events recorded by default."""
 from __future__ import annotations
 
 import subprocess
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import pytest
-from rosutil import REPO, Probe, armourcam, start_armourcam
+from rosutil import REPO, Probe, Recorder, armourcam, start_armourcam
 
 from armourcam import bagio, graph
 from armourcam.commands.record import TOPIC_TYPES
 from armourcam.graph import Replayer, event_qos, latched_qos, stream_qos
 
 SESSION = REPO / "bags" / "session_small"
-
-
-class Recorder:
-    """``armourcam record --out BAG ARGS...`` in its own process group; stderr read as it comes."""
-
-    def __init__(self, bag: Path, *args: str) -> None:
-        self.bag = bag
-        self.proc = start_armourcam(
-            "record",
-            "--out",
-            str(bag),
-            *args,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        self.lines: list[str] = []
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stderr is not None
-        for line in self.proc.stderr:
-            self.lines.append(line)
-
-    def wait_ready(self, timeout: float = 30.0) -> bool:
-        """Wait for the ``armourcam record: ready`` line (False on timeout or exit)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            if any(line.startswith("armourcam record: ready") for line in self.lines):
-                return True
-            if self.proc.poll() is not None or time.monotonic() >= deadline:
-                return False
-            time.sleep(0.05)
-
-    def stop(self) -> str:
-        """Stop it as Ctrl-C does (idempotent); returns its stdout (the counts) and checks that
-        it ended cleanly."""
-        graph.stop_processes([self.proc])
-        out = ""
-        if self.proc.stdout is not None and not self.proc.stdout.closed:
-            out = self.proc.stdout.read()
-            self.proc.stdout.close()
-        self._reader.join(5.0)
-        if self.proc.stderr is not None:
-            self.proc.stderr.close()
-        assert self.proc.returncode == 0, "".join(self.lines)
-        return out
-
-
-@pytest.fixture()
-def recorder() -> Iterator[Callable[..., Recorder]]:
-    """Starts recorders; each is stopped after the test whatever its outcome."""
-    started: list[Recorder] = []
-
-    def start(bag: Path, *args: str) -> Recorder:
-        started.append(Recorder(bag, *args))
-        return started[-1]
-
-    try:
-        yield start
-    finally:
-        for rec in started:
-            graph.stop_processes([rec.proc])
-            for pipe in (rec.proc.stdout, rec.proc.stderr):
-                if pipe is not None:
-                    pipe.close()
 
 
 def test_recording_qos_matches_every_publisher() -> None:

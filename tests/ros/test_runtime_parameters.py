@@ -5,42 +5,8 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Any
 
-import yaml
-from rosutil import Nodes, Probe
-
-
-def _set(probe: Probe, node: str, name: str, value: Any) -> Any:
-    """One SetParameters service call (what ``ros2 param set`` does); returns its result."""
-    from rcl_interfaces.msg import Parameter as ParameterMsg
-    from rcl_interfaces.srv import SetParameters
-
-    client = probe.node.create_client(SetParameters, f"{node}/set_parameters")
-    try:
-        assert probe.spin_until(client.service_is_ready, 20.0), node
-        request = SetParameters.Request(parameters=[ParameterMsg(name=name, value=value)])
-        future = client.call_async(request)
-        assert probe.spin_until(future.done, 10.0), node
-        (result,) = future.result().results  # type: ignore[union-attr]
-        return result
-    finally:
-        probe.node.destroy_client(client)
-
-
-def _get(probe: Probe, node: str, name: str) -> Any:
-    """The parameter's value message (GetParameters service)."""
-    from rcl_interfaces.srv import GetParameters
-
-    client = probe.node.create_client(GetParameters, f"{node}/get_parameters")
-    try:
-        assert probe.spin_until(client.service_is_ready, 20.0), node
-        future = client.call_async(GetParameters.Request(names=[name]))
-        assert probe.spin_until(future.done, 10.0), node
-        (value,) = future.result().values  # type: ignore[union-attr]
-        return value
-    finally:
-        probe.node.destroy_client(client)
+from rosutil import Nodes, Probe, ideal_calibration
 
 
 def test_diameter_change_takes_an_integer_and_warns_that_baselines_are_stale(
@@ -51,27 +17,16 @@ def test_diameter_change_takes_an_integer_and_warns_that_baselines_are_stale(
     baselines measured before it are not comparable, the status is WARN, and /diagnostics carry
     the diameter, the one before and when it changed. Values the start-up rules refuse are
     refused at runtime too, with the parameter named."""
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from diagnostic_msgs.msg import DiagnosticStatus
     from rcl_interfaces.msg import ParameterType, ParameterValue
 
-    from pose_estimator.camera import CameraModel
-
-    calibration = tmp_path / "camera.yaml"
-    calibration.write_text(yaml.safe_dump(CameraModel.ideal(640, 480, 500.0).to_dict()))
-    statuses: list[Any] = []
-    probe.node.create_subscription(
-        DiagnosticArray,
-        "/diagnostics",
-        lambda m: statuses.extend(s for s in m.status if "pose_estimator" in s.name),
-        50,
-    )
+    calibration = ideal_calibration(tmp_path)
+    statuses = probe.statuses("pose_estimator")
+    values = statuses.values  # the latest status's
     nodes.start(
         "pose_estimator",
         params={"calibration_file": str(calibration), "diagnostics_period_s": 0.2},
     )
-
-    def values() -> dict[str, str]:
-        return {kv.key: kv.value for kv in statuses[-1].values} if statuses else {}
 
     assert probe.spin_until(lambda: values().get("diameter_mm") == "7.1", 20.0), nodes.log(
         "pose_estimator"
@@ -82,9 +37,9 @@ def test_diameter_change_takes_an_integer_and_warns_that_baselines_are_stale(
     node = "/pose_estimator"
     before = time.time()
     seven = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=7)
-    result = _set(probe, node, "diameter_mm", seven)
+    result = probe.set_parameter(node, "diameter_mm", seven)
     assert result.successful, result.reason
-    value = _get(probe, node, "diameter_mm")
+    value = probe.get_parameter(node, "diameter_mm")
     assert value.type == ParameterType.PARAMETER_DOUBLE and value.double_value == 7.0
 
     assert probe.spin_until(lambda: values().get("diameter_mm") == "7", 10.0), statuses[-1:]
@@ -99,7 +54,7 @@ def test_diameter_change_takes_an_integer_and_warns_that_baselines_are_stale(
     assert "baselines measured before the change are not comparable" in line
 
     # The same value again is no change: no second warning.
-    assert _set(probe, node, "diameter_mm", seven).successful
+    assert probe.set_parameter(node, "diameter_mm", seven).successful
     probe.spin_for(0.5)
     assert nodes.log("pose_estimator").count("diameter_mm changed") == 1
 
@@ -110,7 +65,7 @@ def test_diameter_change_takes_an_integer_and_warns_that_baselines_are_stale(
         (ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=math.inf), "finite"),
         (ParameterValue(type=ParameterType.PARAMETER_STRING, string_value="7"), "type"),
     ):
-        result = _set(probe, node, "diameter_mm", bad)
+        result = probe.set_parameter(node, "diameter_mm", bad)
         assert not result.successful and reason in result.reason, (bad, result.reason)
-    assert _get(probe, node, "diameter_mm").double_value == 7.0
+    assert probe.get_parameter(node, "diameter_mm").double_value == 7.0
     assert nodes.alive("pose_estimator")

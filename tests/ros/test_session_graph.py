@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from matcherutil import Hall, Latched
 from rosutil import REPO, Nodes, Probe, armourcam
 
 from armourcam import sessionbag
@@ -90,42 +91,20 @@ def test_a_run_without_frames_after_it_is_reported_after_settle_timeout_s(
     """The camera stops with the waves: the run used to wait for frames for ever. The matcher
     reports it as not measured once ``settle_timeout_s`` passed (its own timer, no frame
     needed), and the next run is measured as usual."""
-    from sensor_msgs.msg import PointCloud2, PointField
-    from std_msgs.msg import Bool, Header, String
-
-    from armourcam import records
-    from armourcam.graph import event_qos, record_qos
-
     data = tmp_path / "data"
     nodes.start(
         "displacement_matcher",
         params={"data_dir": str(data), "baseline_frames": 2, "settle_timeout_s": 2.0},
     )
-    n = probe.node
-    poses = n.create_publisher(PointCloud2, "/armourcam/poses", record_qos("reliable", 10))
-    active = n.create_publisher(Bool, "/hall/run_active", event_qos())
-    run_id = n.create_publisher(String, "/hall/run_id", event_qos())
-    reports: list[dict] = []
-    n.create_subscription(
-        String, "/armourcam/report", lambda m: reports.append(json.loads(m.data)), latched_qos(10)
-    )
+    hall = Hall(probe)
+    reports = Latched(probe).reports
+    none = np.empty((0, 3))  # frames without a fiducial
 
-    def frame() -> PointCloud2:
-        header = Header(frame_id="cam")
-        header.stamp = n.get_clock().now().to_msg()
-        rows = records.poses_to_records([])
-        return records.to_pointcloud2(PointCloud2, PointField, header, records.POSE, rows)
-
-    assert probe.spin_until(lambda: poses.get_subscription_count() > 0, 20.0)
+    assert hall.wait_matched()
     probe.spin_for(0.5)
-    for _ in range(2):
-        poses.publish(frame())
-        probe.spin_for(0.1)
+    hall.frames(none, 2)
     assert probe.spin_until(lambda: (data / "baseline.json").exists(), 10.0)
-    run_id.publish(String(data="wave-dark"))
-    active.publish(Bool(data=True))
-    probe.spin_for(0.3)
-    active.publish(Bool(data=False))
+    hall.run("wave-dark", none, settle=0)
     assert probe.spin_until(lambda: reports, 8.0), nodes.log("displacement_matcher")
     (rep,) = reports
     assert rep["run_id"] == "wave-dark" and rep["frames_fused"] == 0
@@ -134,13 +113,6 @@ def test_a_run_without_frames_after_it_is_reported_after_settle_timeout_s(
     assert "run wave-dark: not measured: no frame in the" in log  # 2-3 s: the timer's 1 s period
     assert "after the run (settle_timeout_s 2)" in log
 
-    run_id.publish(String(data="wave-lit"))
-    active.publish(Bool(data=True))
-    probe.spin_for(0.3)
-    active.publish(Bool(data=False))
-    probe.spin_for(0.3)
-    for _ in range(3):
-        poses.publish(frame())
-        probe.spin_for(0.1)
+    hall.run("wave-lit", none)
     assert probe.spin_until(lambda: len(reports) == 2, 10.0), nodes.log("displacement_matcher")
     assert reports[-1]["run_id"] == "wave-lit" and reports[-1]["settled"] is True

@@ -63,17 +63,21 @@ def _params(out: Path, data_dir: Path, truth: dict[str, Any] | None, compressed:
 def _after_images(bag: Path) -> list[Any]:
     """The scene after each wave run: the last frame before the next run starts (the bag's
     last frame for the last run), one per run in order, for the runs' overlays."""
-    from armourcam import bagio
+    from armourcam import bagio, sessionbag
 
+    out: list[Any] = []
+    last = None
     with bagio.open_bag(bag) as b:
-        starts = [m.timestamp_ns for m in b.messages(["/hall/run_active"]) if m.message.data]
-        frames = [(f.timestamp_ns, f.image) for f in b.frames() if f.image is not None]
-    ends = [*starts[1:], None]
-    out = []
-    for end in ends:
-        before = [img for t, img in frames if end is None or t < end]
-        out.append(before[-1] if before else None)
-    return out
+        topic = sessionbag.RUN_ACTIVE_TOPIC
+        starts = [m.timestamp_ns for m in b.messages([topic]) if m.message.data]
+        # One pass, keeping the last image: each run's ends where the next run starts.
+        for frame in b.frames():
+            if frame.image is None:
+                continue
+            while len(out) < len(starts) - 1 and frame.timestamp_ns >= starts[len(out) + 1]:
+                out.append(last)
+            last = frame.image
+    return out + [last] * (max(len(starts), 1) - len(out))
 
 
 def run(args: argparse.Namespace) -> int:
