@@ -21,7 +21,7 @@ The five ellipse parameters follow by linear least squares on the positions (the
 distance's derivatives in the quadratic-form parametrisation of :mod:`.edge_fit`), with one
 re-solve without lines beyond :data:`_OUTLIER_SDS` sds, pass after pass until the ellipse moves
 less than :data:`_CONVERGED_PX`. The covariance is the least-squares one (times
-:data:`_CORRELATION` for neighbouring lines sharing pixels) with the positions' variance
+:func:`correlation_factor` for neighbouring lines sharing pixels) with the positions' variance
 propagated from the image noise where it is known: each position is linear in its samples,
 whose noise bilinear interpolation correlates (:func:`_line_noise_factor`). The residuals widen
 it only by their misfit beyond :data:`MISFIT_TOLERANCE_PX`: the model's own small misfit to a
@@ -102,18 +102,18 @@ def _interpolated_noise_correlation(d: NDArray[np.float64]) -> NDArray[np.float6
     )
 
 
-#: Neighbouring lines, :data:`LINE_SPACING_PX` apart along the arc, share interpolated pixels:
-#: their positions' errors correlate by about R(spacing) / R(0) (1/4 at one pixel), which the
-#: least squares, taking them as independent, leave out. For parameters that move every line
-#: alike the fit's sd is then larger by sqrt(1 + 2 rho); renders agreed (1.2 measured).
-_CORRELATION = float(
-    np.sqrt(
-        1.0
-        + 2.0
-        * _interpolated_noise_correlation(np.array(1.0))
-        / _interpolated_noise_correlation(np.array(0.0))
+def correlation_factor(spacing: float) -> float:
+    """Neighbouring lines ``spacing`` pixels apart along the arc share interpolated pixels:
+    their positions' errors correlate by about R(spacing) / R(0) (1/4 at one pixel, 1/32 at
+    1.5), which the least squares, taking them as independent, leave out. For parameters that
+    move every line alike the fit's sd is then larger by sqrt(1 + 2 rho), returned here;
+    renders agreed (1.2 measured at one pixel)."""
+    rho = _interpolated_noise_correlation(np.array(spacing)) / _interpolated_noise_correlation(
+        np.array(0.0)
     )
-)
+    return float(np.sqrt(1.0 + 2.0 * rho))
+
+
 #: Model misfit tolerated before the residuals widen the covariance, RMS pixels per line: the
 #: edge-profile model's typical gap to an area-sampled, Gaussian-blurred printed edge (aliasing
 #: at 0.5 px of blur: 0.015-0.020 px on noise-free renders at 45-120 px, 0.007-0.015 at 0.7 px).
@@ -123,14 +123,16 @@ _CORRELATION = float(
 MISFIT_TOLERANCE_PX = 0.015
 #: Image blur (optics, pixel integration, interpolation) assumed before it is measured, pixels.
 _START_BLUR = 0.8
-#: A first pass from a coarse seed uses every this many lines.
-_SPARSE = 3
+#: Arc length between the lines of a first pass from a coarse seed, pixels (whatever the final
+#: passes' spacing: that pass also measures the blur, which the later passes and the other
+#: circles of the fiducial keep).
+_SPARSE_SPACING_PX = 3.0
 #: A fit whose last pass moved it less than this (pixels) has converged.
 _CONVERGED_PX = 0.05
 #: Columns of the folded remap maps (remap takes maps of fewer than 32767 rows and columns).
 _FOLD = 4096
 #: Fits per padded block.
-_BLOCK = 256
+_BLOCK = 512
 _INV_SQRT_2PI = float(1.0 / np.sqrt(2.0 * np.pi))
 
 
@@ -138,16 +140,16 @@ _INV_SQRT_2PI = float(1.0 / np.sqrt(2.0 * np.pi))
 class _Lines:
     """Sample lines of one pass for a block of ``k`` fits, padded to ``m`` lines each.
 
-    Full edges' lines are in single precision (half the memory traffic of every per-line
-    operation), but for the origins: image coordinates in single precision are off by up to
-    1e-4 px, so the sample maps are rounded to it once, from double (fewer lines flip across a
-    window or height test than with every term rounded); the least-squares sums are formed in
-    double precision (:func:`_solve`). Against double precision throughout, full edges' fits on
-    the 400-target frames moved by 3e-6 px (median) and under 5e-4 px (bar one dot in 1200,
-    2.5e-3 px, 0.2 of its sd). Partial edges (arcs) keep double precision, their fits unchanged
-    from a given seed: many of their lines sit near the step tests' limits (lines across a
-    sector's end see part of the step), so that a seed moved by 2e-5 px already moves an arc by
-    up to 0.01 px.
+    Lines are in single precision (half the memory traffic of every per-line operation), but
+    for the origins: image coordinates in single precision are off by up to 1e-4 px, so the
+    sample maps are rounded to it once, from double (fewer lines flip across a window or height
+    test than with every term rounded); the least-squares sums too (a few hundred terms each),
+    solved in double precision (:func:`_solve`). Against double precision throughout, full
+    edges' fits on the 400-target frames moved by 3e-6 px (median) and under 5e-4 px (bar one
+    dot in 1200, 2.5e-3 px, 0.2 of its sd). Partial edges (arcs) move more, though far less
+    than their sds: many of their lines sit near the step tests' limits (lines across a
+    sector's end see part of the step), so rounding flips a few of them; on the ``dot`` speed
+    frame the 400 arcs moved by 0.001 sd (median), 0.02 sd (99th percentile), 0.25 sd at most.
     """
 
     valid: NDArray[np.bool_]  # (k, m) a line, not padding
@@ -174,6 +176,7 @@ def refine_by_profiles(
     rho_range: tuple[float, float] = (0.0, np.inf),
     passes: int = 4,
     noise_std: float | None = None,
+    spacing: float = LINE_SPACING_PX,
 ) -> EdgeFits:
     """Refine ellipses from edge profiles along their normals (see the module docstring).
 
@@ -195,6 +198,9 @@ def refine_by_profiles(
         The image's noise sd in its intensity units: the covariance is then the noise's,
         propagated through the lines (:func:`_line_noise_factor`), widened only by misfit
         beyond :data:`MISFIT_TOLERANCE_PX`; without it, the residuals' own scatter.
+    spacing : float
+        Arc length between neighbouring lines, pixels (their shared pixels are accounted for
+        in the covariance, :func:`correlation_factor`).
 
     Returns
     -------
@@ -210,12 +216,20 @@ def refine_by_profiles(
     seeds = checked_seeds(seeds)
     if passes < 1:
         raise DetectorError(f"passes must be at least 1, got {passes}")
+    if not (np.isfinite(spacing) and 0.25 <= spacing <= 4.0):
+        raise DetectorError(f"spacing must be in [0.25, 4] pixels, got {spacing!r}")
     if noise_std is not None and not (np.isfinite(noise_std) and noise_std > 0):
         raise DetectorError(f"noise_std must be positive and finite, got {noise_std!r}")
     rho = checked_rho_range(rho_range)
     polarity = polarity_signs(dark_inside, seeds.shape[0])
     return refine_by_profiles_f32(
-        np.asarray(img, dtype=np.float32), seeds, polarity, rho, passes, noise_std=noise_std
+        np.asarray(img, dtype=np.float32),
+        seeds,
+        polarity,
+        rho,
+        passes,
+        noise_std=noise_std,
+        spacing=float(spacing),
     )
 
 
@@ -229,6 +243,7 @@ def refine_by_profiles_f32(
     *,
     partial: bool = False,
     noise_std: float | None = None,
+    spacing: float = LINE_SPACING_PX,
 ) -> EdgeFits:
     """:func:`refine_by_profiles` on a float32 image already converted (one conversion serves
     every circle of a frame); ``polarity`` is +1 where the inside is dark. ``spread``: the
@@ -237,7 +252,8 @@ def refine_by_profiles_f32(
     ellipse (a coding track's arcs): only lines whose step is near the largest ones' (within
     :data:`_ARC_HEIGHT_TOLERANCE`) count, so no line across a sector boundary is used, and the
     ellipse is tied to its seed (:data:`_ARC_TIE_PX`) along what those lines leave open.
-    ``noise_std``: as in :func:`refine_by_profiles`."""
+    ``noise_std``: as in :func:`refine_by_profiles`. ``spacing``: arc length between lines,
+    pixels (:func:`line_counts`)."""
     n = seeds.shape[0]
     out = EdgeFits.blank(n)
     usable = np.all(np.isfinite(seeds), axis=1) & (seeds[:, 3] > 1.0)
@@ -245,7 +261,7 @@ def refine_by_profiles_f32(
     idx = np.flatnonzero(usable)
     if idx.size == 0 or min(src.shape) < 5:
         return out
-    count = line_counts(seeds[idx])
+    count = line_counts(seeds[idx], spacing)
     # Blocks of fits with similar line counts, each padded to its largest.
     order = np.argsort(count, kind="stable")
     for first in range(0, idx.size, _BLOCK):
@@ -264,6 +280,7 @@ def refine_by_profiles_f32(
             j,
             partial,
             noise_std,
+            spacing,
         )
     drift = np.max(np.abs(out.params[:, :4] - seeds[:, :4]), axis=1)
     # A fit that wandered off its seed by more than its windows was not fitting this edge.
@@ -283,6 +300,7 @@ def _fit_block(
     j: NDArray[np.intp],
     partial: bool = False,
     noise_std: float | None = None,
+    spacing: float = LINE_SPACING_PX,
 ) -> None:
     """Fit one block of ellipses; results written into ``out`` at rows ``j``.
 
@@ -303,7 +321,11 @@ def _fit_block(
         c, b = cur[rows], blur[rows]
         if coarse:
             # Every line of a partial edge: a third of them may hold too few of its arcs.
-            sparse = count[rows] if partial else np.maximum(count[rows] // _SPARSE, 16)
+            sparse = (
+                count[rows]
+                if partial
+                else np.maximum((count[rows] * (spacing / _SPARSE_SPACING_PX)).astype(np.intp), 16)
+            )
             n_lines, cap = sparse, np.full(rows.size, MAX_WINDOW_PX)
         else:
             # Windows that hold the edge's tails and little more: every sample in a window adds
@@ -324,6 +346,7 @@ def _fit_block(
             measure_blur=coarse,
             tie=seeds[rows] if partial else None,
             noise_std=noise_std,
+            spacing=spacing,
         )
         ok = res.ok & alive[rows]
         moved = np.max(np.abs(res.params[:, :4] - c[:, :4]), axis=1)
@@ -361,6 +384,7 @@ def _pass(
     measure_blur: bool,
     tie: NDArray[np.float64] | None = None,
     noise_std: float | None = None,
+    spacing: float = LINE_SPACING_PX,
 ) -> EdgeFits:
     """One sampling pass: lines on the current ellipses, edge positions, a least-squares step.
     Returns the stepped ellipses; ``spread`` is the blur, measured when ``measure_blur`` (wide
@@ -369,7 +393,7 @@ def _pass(
     image noise the covariance is propagated from (None: the residuals')."""
     partial = tie is not None
     k = cur.shape[0]
-    dtype: type[np.floating[Any]] = np.float64 if partial else np.float32
+    dtype: type[np.floating[Any]] = np.float32
     lines = _lines(cur, n_lines, rho_range, cap, dtype)
     mean, mass, m2 = _centroids(src, lines, pol)
     lower, upper = lines.lower, lines.upper
@@ -434,7 +458,9 @@ def _pass(
         with np.errstate(invalid="ignore", divide="ignore"):
             spread = step0 / (typical * share * gain0)
         noise_var = noise_std * noise_std * _line_noise_factor(step0) * spread**2
-    delta, cov_f, rms, used = _solve(lines.jac, t, good, prior, noise_var)
+    delta, cov_f, rms, used = _solve(
+        lines.jac, t, good, prior, noise_var, correlation_factor(spacing)
+    )
     ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
     theta = np.zeros((k, 5))
     theta[:, 2:] = quadratic_form(cur[:, 2:5])
@@ -501,13 +527,15 @@ def _truncated_normal(
     return z, mean, var
 
 
-def line_counts(ellipses: NDArray[np.float64]) -> NDArray[np.intp]:
-    """Lines a fit of each ``(u, v, a, b, angle)`` row samples: about one per pixel of arc
-    (Ramanujan's perimeter)."""
+def line_counts(
+    ellipses: NDArray[np.float64], spacing: float = LINE_SPACING_PX
+) -> NDArray[np.intp]:
+    """Lines a fit of each ``(u, v, a, b, angle)`` row samples: one per ``spacing`` pixels of
+    arc (Ramanujan's perimeter), at least 16."""
     a, b = ellipses[:, 2], ellipses[:, 3]
     h = ((a - b) / (a + b)) ** 2
     perim = np.pi * (a + b) * (1.0 + 3.0 * h / (10.0 + np.sqrt(4.0 - 3.0 * h)))
-    return np.clip(np.round(perim / LINE_SPACING_PX), 16, 4096).astype(np.intp)
+    return np.clip(np.round(perim / spacing), 16, 4096).astype(np.intp)
 
 
 def _lines(
@@ -728,6 +756,7 @@ def _solve(
     good: NDArray[np.bool_],
     prior: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     noise_var: NDArray[np.float64] | None = None,
+    correlation: float = 1.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
     """Least squares ``jac . delta = -t`` per fit over the good lines, then once more without
     the lines beyond :data:`_OUTLIER_SDS` robust sds: the step, its covariance (the positions'
@@ -736,15 +765,15 @@ def _solve(
     ``(o + delta)^T Q (o + delta)``, and the covariance is still the lines' alone.
     ``noise_var``: each fit's line variance from the image noise; the covariance then takes it,
     or the residuals' variance less the tolerated misfit (:data:`MISFIT_TOLERANCE_PX`) where
-    that is larger. The returned RMS residual is the residuals' either way."""
+    that is larger; ``correlation``: the lines' :func:`correlation_factor`, which widens the
+    covariance. The returned RMS residual is the residuals' either way."""
     k = jac.shape[0]
-    # Sums in double precision from the lines' single-precision terms.
-    jac = jac.astype(np.float64, copy=False)
-    t = t.astype(np.float64, copy=False)
+    # The sums in the lines' precision (a few hundred terms each: relative error ~1e-6), solved
+    # in double precision.
+    t = t.astype(jac.dtype, copy=False)
     jw = jac * good[:, None, :]
-    jact = np.swapaxes(jac, 1, 2)
-    normal = jw @ jact
-    rhs = -(jw @ t[:, :, None])[:, :, 0]
+    normal = (jw @ np.swapaxes(jac, 1, 2)).astype(np.float64)
+    rhs = -(jw @ t[:, :, None])[:, :, 0].astype(np.float64)
     use = good
     # A partial edge's lines are weighed against its prior by their sd: assumed in the first
     # round, the residuals' in the second.
@@ -768,21 +797,21 @@ def _solve(
             )
         step = np.nan_to_num(delta)
         if rnd == 0:
-            resid = np.where(use, t + (step[:, None, :] @ jac)[:, 0, :], 0.0)
+            resid = np.where(use, t + (step.astype(jac.dtype)[:, None, :] @ jac)[:, 0, :], 0.0)
             sd = np.sqrt((resid * resid).sum(axis=1) / np.maximum(used - 5, 1))
             # A few bad lines inflate the RMS only a little among a fit's hundred or more.
             keep = np.abs(resid) <= _OUTLIER_SDS * sd[:, None]
             # The few lines dropped come out of the sums (cheaper than summing all again).
             fit, line = np.nonzero(use & ~keep)
             if fit.size:
-                jd = jac[fit, :, line]
+                jd = jac[fit, :, line].astype(np.float64)
                 np.subtract.at(normal, fit, jd[:, :, None] * jd[:, None, :])
                 np.add.at(rhs, fit, jd * t[fit, line][:, None])
             use = use & keep
         else:
             # The residuals' sum of squares from the sums already formed: t.t - 2 delta.r +
             # delta^T N delta over the lines used (r = -J t), no second pass over the lines.
-            tt = np.where(use, t * t, 0.0).sum(axis=1)
+            tt = np.where(use, t * t, 0.0).sum(axis=1, dtype=np.float64)
             ss = tt - 2.0 * np.einsum("ki,ki->k", step, rhs)
             ss += np.einsum("ki,kij,kj->k", step, normal, step)
             sd = np.sqrt(np.maximum(ss, 0.0) / np.maximum(used - 5, 1))
@@ -792,5 +821,5 @@ def _solve(
         var = sd[solvable] ** 2
         if noise_var is not None:
             var = np.fmax(noise_var[solvable], var - MISFIT_TOLERANCE_PX**2)
-        cov[solvable] = inv * (_CORRELATION**2 * var)[:, None, None]
+        cov[solvable] = inv * (correlation**2 * var)[:, None, None]
     return delta, cov, sd, used.astype(np.intp)

@@ -13,7 +13,7 @@ from fit_scenes import (
 )
 
 from fiducial_detector.design import get_design
-from fiducial_detector.detect import fit_design_circles
+from fiducial_detector.detect import POSE_LINE_SPACING_PX, fit_design_circles
 from fiducial_detector.errors import DetectorError
 from fiducial_detector.profile_fit import refine_by_profiles
 
@@ -71,20 +71,25 @@ def test_covariance_predicts_the_scatter_without_a_noise_estimate() -> None:
         assert np.all((ratio > 1 / 1.8) & (ratio < 1.6)), (noise, ratio)
 
 
-@pytest.mark.parametrize(("size", "slant"), [(60, 35), (90, 60)])
-def test_covariance_from_the_image_noise_predicts_the_scatter(size: float, slant: float) -> None:
+@pytest.mark.parametrize(
+    ("size", "slant", "spacing"), [(60, 35, 1.0), (90, 60, 1.0), (60, 35, POSE_LINE_SPACING_PX)]
+)
+def test_covariance_from_the_image_noise_predicts_the_scatter(
+    size: float, slant: float, spacing: float
+) -> None:
     """Given the image noise, the covariance is the noise's propagated through the lines:
     predicted sds of (u, v, a, b) within 0.65-1.45 times the empirical ones at 0.5 % and 3 %
-    noise alike (blur 0.5 px, where aliasing leaves ~0.02 px of misfit per line). From the
-    residuals alone the same fits at 0.5 % noise over-predict the semi-axes' sds (that misfit
-    does not scatter from image to image)."""
+    noise alike (blur 0.5 px, where aliasing leaves ~0.02 px of misfit per line), with lines a
+    pixel apart (sharing interpolated pixels) or the detector's pose circle's sparser ones. From
+    the residuals alone the same fits at 0.5 % noise over-predict the semi-axes' sds (that
+    misfit does not scatter from image to image)."""
     for noise, seed0 in ((0.005, 300), (0.03, 400)):
         errs, preds, resid = [], [], []
         for rep in range(30):
             scene = render_one("ring", size, slant, 0.5, noise, seed0 + rep)
             truth = true_ellipse(scene, 0)
             seed = coarse_seed(truth, np.random.default_rng(seed0 + 50 + rep))
-            args = {"dark_inside": True, "rho_range": RING_RHO}
+            args = {"dark_inside": True, "rho_range": RING_RHO, "spacing": spacing}
             fit = refine_by_profiles(scene.image, seed[None], noise_std=noise * 255, **args)
             assert fit.ok[0]
             errs.append(fit.params[0, :4] - truth[:4])
@@ -106,7 +111,13 @@ def test_detector_default_is_the_profile_fit_and_steep_dots_get_the_model_fit() 
     truth = true_ellipse(scene, 0)
     seed = coarse_seed(truth, np.random.default_rng(5))
     default = fit_design_circles(scene.image, seed[None], spec, 2.5)[0]
-    alone = refine_by_profiles(scene.image, seed[None], dark_inside=True, rho_range=RING_RHO)
+    alone = refine_by_profiles(
+        scene.image,
+        seed[None],
+        dark_inside=True,
+        rho_range=RING_RHO,
+        spacing=POSE_LINE_SPACING_PX,
+    )
     assert len(default) >= 2  # the pose circle and at least one concentric circle
     np.testing.assert_allclose(default[0].center_px, alone.params[0, :2], atol=1e-9)
     dot = get_design("dot")
@@ -135,3 +146,5 @@ def test_unfittable_seeds_fail_cleanly_and_bad_arguments_raise() -> None:
         refine_by_profiles(flat, seed, dark_inside=True, passes=0)
     with pytest.raises(DetectorError, match="noise_std"):
         refine_by_profiles(flat, seed, dark_inside=True, noise_std=0.0)
+    with pytest.raises(DetectorError, match="spacing"):
+        refine_by_profiles(flat, seed, dark_inside=True, spacing=0.0)
