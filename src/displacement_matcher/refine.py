@@ -382,9 +382,11 @@ def assign_unit_groups(
     with a candidate group's face now in front of one of its own (:func:`_covered`: it is hidden
     there) and :data:`LOST_COST_MM` otherwise: of two units whose faces fit one group, the one
     whose place is now empty moved, and the one it covers stays (a mover come to rest 20 mm in
-    front of a neighbour showing the same codes). Units of one fiducial are left to the
-    fiducial matching (one face is weak evidence). Translations are limited to ``2 * gate_mm``
-    (``gate_mm`` across the line of sight).
+    front of a neighbour showing the same codes). Units seen through one fiducial take part
+    with the groups holding its code, but their assignments are not returned (one face is weak
+    evidence: the fiducial matching pairs it): they only keep a two-faced unit from a group that
+    is theirs (a mover whose pair lands on a neighbour's new pair after a shorter motion than its
+    own). Translations are limited to ``2 * gate_mm`` (``gate_mm`` across the line of sight).
 
     Parameters
     ----------
@@ -431,7 +433,7 @@ def assign_unit_groups(
     motions: list[NDArray[np.float64]] = []
     shares: list[list[tuple[int, int]]] = []
     for n, (_, ix) in enumerate(base_units):
-        if len(ix) < 2 or n in still_units:
+        if not ix or n in still_units:
             continue
         bpos = np.array([baseline[i].position_mm for i in ix], dtype=np.float64)
         centre = bpos.mean(axis=0)
@@ -443,7 +445,7 @@ def assign_unit_groups(
                 for i in ix
                 if int(baseline[i].code) in cur_of[c]
             ]
-            if len(shared) < 2:
+            if len(shared) < min(2, len(ix)):
                 continue
             v = np.array(
                 [
@@ -492,7 +494,7 @@ def assign_unit_groups(
     out: list[GroupAssignment] = []
     for r, c in zip(ri.tolist(), ci.tolist(), strict=True):
         hit = which.get((r, c))
-        if hit is not None:
+        if hit is not None and len(shares[hit]) >= 2:
             out.append(
                 GroupAssignment(
                     tuple(base_units[ur[r]][1]),

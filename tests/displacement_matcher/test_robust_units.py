@@ -455,6 +455,31 @@ def test_mover_resting_in_front_of_a_unit_showing_the_same_faces_is_the_one_disp
     assert covered.status == "lost"
 
 
+def test_unit_seen_through_one_face_keeps_its_group_from_a_two_faced_mover() -> None:
+    """Two units move about 1 Dn. Unit A, seen through codes 17 and 29, now also shows code 3;
+    unit B, seen through code 29 alone, now shows 17 and 29 where A's pair would land after a
+    shorter motion (14 mm against A's true 22 mm), in A's orientation. By A's faces alone B's
+    group is the cheaper, and the one-faced B was left out of the whole-unit assignment, so A
+    took it and B was then matched into A's group 56 mm off (seed 1 of the noisy dolos fields:
+    errors up to 33 mm in depth). B's one face takes part in the assignment (it is not given
+    pairs by it): A keeps its own group and both units move as they did."""
+    a = np.array([0.0, 0.0, 1800.0])
+    move_a = np.array([-17.0, 1.0, -14.0])
+    move_b = np.array([-12.0, 13.0, -9.0])
+    b = a + np.array([-4.0, -10.0, 8.0]) - move_b  # B's new pair: A's old pair moved 14 mm
+    baseline = [p for p in _unit(a, R0) if p.code in (17, 29)]
+    baseline += [p for p in _unit(b, R0) if p.code == 29]
+    current = [p for p in _unit(a + move_a, R0) if p.code in (3, 17, 29)]
+    current += [p for p in _unit(b + move_b, R0) if p.code in (17, 29)]
+    an = match_units(baseline, current, unit_map=UMAP, gate_mm=50.0)
+    unit_a = next(u for u in an.units if set(u.baseline_indices) == {0, 1})
+    unit_b = next(u for u in an.units if set(u.baseline_indices) == {2})
+    assert set(unit_a.current_indices) >= {1, 2} and unit_a.n_matched == 2
+    np.testing.assert_allclose(unit_a.translation_mm, move_a, atol=1.0)
+    assert unit_b.n_matched == 1
+    np.testing.assert_allclose(unit_b.translation_mm, move_b, atol=1.0)
+
+
 @pytest.mark.parametrize("flipped", [False, True])
 @pytest.mark.parametrize(
     ("axis", "deg"), [([0.0, 0.0, 1.0], 21.0), ([0.0, 1.0, 0.0], 30.0), ([1.0, 1.0, 0.0], 21.0)]
