@@ -325,7 +325,6 @@ class RecentStamps:
         if size < 1:
             raise GraphError(f"stamp memory must hold >= 1 frame, got {size}")
         self._keys = KeyMemory(size)
-        self.size = size
         #: Frames recognised as repeats so far.
         self.repeats = 0
 

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from pose_estimator.types import FiducialPose
 
 from .errors import MatcherError
-from .match import match
+from .match import DEFAULT_GATE_MM, match
 from .rigid import across_line_of_sight, rigid_fit
 from .types import MatchResult, UnitMotion
 from .units import (
@@ -56,15 +56,15 @@ UNMOVED_CHI2 = 7.81
 #: and model misfit that differ between two images shift a pose by microns, beyond a clean
 #: image's noise-only covariance); far below any motion the damage count tells apart.
 UNMOVED_MM = 0.5
-# A baseline unit left out of the whole-unit assignment (:func:`assign_unit_groups`) is either
-# hidden behind something that came to rest in front of it, or lost from view; losing a unit
-# costs this much there (half the matcher's gate: what one unmatched fiducial costs), so that of
-# two units claiming one group, the one whose place is now covered stays behind it.
-LOST_COST_MM = 25.0
-# In front of a baseline face: within this distance of it across the line of sight (a face of
-# the unit resting over it) ...
+#: A baseline unit left out of the whole-unit assignment (:func:`assign_unit_groups`) is either
+#: hidden behind something that came to rest in front of it, or lost from view; losing a unit
+#: costs this much there (half the matcher's gate: what one unmatched fiducial costs), so that of
+#: two units claiming one group, the one whose place is now covered stays behind it.
+LOST_COST_MM = 0.5 * DEFAULT_GATE_MM
+#: In front of a baseline face: within this distance of it across the line of sight (a face of
+#: the unit resting over it) ...
 COVER_MM = 10.0
-# ... and nearer the camera by this much plus three standard deviations of the two depths.
+#: ... and nearer the camera by this much plus three standard deviations of the two depths.
 COVER_DEPTH_MM = 5.0
 
 
@@ -478,12 +478,11 @@ def assign_unit_groups(
     cost = np.full((len(ur), len(uc) + len(ur)), big)
     # A unit left unassigned is either hidden (behind a unit that may have come to rest in
     # front of it: a candidate group's faces) or lost from view, which is rarer.
-    occluders = sorted({j for c in uc for j in cur_groups[c]})
+    occluders = list({j for c in uc for j in cur_groups[c]})
+    front = np.array([current[j].position_mm for j in occluders], dtype=np.float64)
+    front_sd = np.array([current[j].sigma_mm[2] for j in occluders], dtype=np.float64)
     vacancy = np.array(
-        [
-            0.0 if _covered(baseline, current, base_units[n][1], occluders) else LOST_COST_MM
-            for n in ur
-        ]
+        [0.0 if _covered(baseline, base_units[n][1], front, front_sd) else LOST_COST_MM for n in ur]
     )
     cost[:, len(uc) :] = np.where(np.eye(len(ur), dtype=bool), vacancy[:, None], big)
     which: dict[tuple[int, int], int] = {}
@@ -530,17 +529,14 @@ def _rigid_misfit(
 
 def _covered(
     baseline: Sequence[FiducialPose],
-    current: Sequence[FiducialPose],
     members: Sequence[int],
-    occluders: Sequence[int],
+    cpos: NDArray[np.float64],
+    csd: NDArray[np.float64],
 ) -> bool:
-    """Whether one of the current fiducials ``occluders`` lies in front of a baseline unit's
-    faces (``members``): within :data:`COVER_MM` of one across the line of sight and nearer the
-    camera by more than :data:`COVER_DEPTH_MM` plus three standard deviations of the depths."""
-    if not occluders:
-        return False
-    cpos = np.array([current[j].position_mm for j in occluders], dtype=np.float64)
-    csd = np.array([current[j].sigma_mm[2] for j in occluders], dtype=np.float64)
+    """Whether one of the current fiducials at ``cpos`` (depth sds ``csd``) lies in front of a
+    baseline unit's faces (``members``): within :data:`COVER_MM` of one across the line of sight
+    and nearer the camera by more than :data:`COVER_DEPTH_MM` plus three standard deviations of
+    the depths."""
     for i in members:
         b = np.asarray(baseline[i].position_mm, dtype=np.float64)
         if not (np.all(np.isfinite(b)) and np.any(b)):

@@ -151,7 +151,7 @@ ARC_MIN_COVERAGE = 0.1
 #: did not were left out, so that depth jumped between the arcs' and the dot's.
 ARC_MIN_MINOR_PX = 10.0
 #: Arc length between a coding-track arc's profile lines, pixels (as the pose circle's).
-ARC_LINE_SPACING_PX = 1.5
+ARC_LINE_SPACING_PX = POSE_LINE_SPACING_PX
 #: Profile passes of an arc fit: a coarse one (wide windows, measuring the blur) from the scaled
 #: pose circle, then full ones.
 ARC_PASSES = 3

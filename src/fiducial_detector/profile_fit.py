@@ -1,11 +1,11 @@
 """Sub-pixel ellipses from edge profiles sampled along the normals (paper step 3, fast form).
 
-Each edge is sampled along short lines normal to its current ellipse, about one line per pixel of
-arc, by bilinear interpolation (``cv2.remap``, one call for every edge of every fiducial), with
-:data:`SAMPLES` samples spread over each line's window. Along each line the edge's position is
-the centroid of the intensity derivative, which telescopes to the area (zeroth-moment) edge
-locator: linear in the intensities (so no errors-in-variables shrinkage) and independent of the
-sampling step once the step is below about twice the blur.
+Each edge is sampled along short lines normal to its current ellipse, one line per ``spacing``
+pixels of arc (one by default), by bilinear interpolation (``cv2.remap``, one call for every edge
+of every fiducial), with :data:`SAMPLES` samples spread over each line's window. Along each line
+the edge's position is the centroid of the intensity derivative, which telescopes to the area
+(zeroth-moment) edge locator: linear in the intensities (so no errors-in-variables shrinkage) and
+independent of the sampling step once the step is below about twice the blur.
 
 Windows stop half-way to the design's neighbouring printed edges (``rho_range``, as in
 :mod:`.edge_fit`) and, in the final passes, at :data:`_WINDOW_SPREADS` spreads of the derivative
@@ -77,7 +77,7 @@ _ARC_HEIGHT_TOLERANCE = 0.2
 #: Largest relative difference of a partial edge's line step (mass over the window's share of
 #: a centred step) from its fit's upper decile: a first cut of the lines across white sectors.
 _ARC_STEP_TOLERANCE = 0.4
-#: Lines (about a pixel apart) left out next to a partial edge's ends.
+#: Lines left out next to a partial edge's ends.
 _ARC_END_LINES = 1
 #: Prior sd (pixels) of a partial edge's RMS displacement from its seed over the whole ellipse.
 #: A few clustered arcs (a code with five black sectors side by side) leave some combinations
@@ -304,7 +304,7 @@ def _fit_block(
 ) -> None:
     """Fit one block of ellipses; results written into ``out`` at rows ``j``.
 
-    Without a known blur the seed is taken as coarse: a first pass on a third of the lines with
+    Without a known blur the seed is taken as coarse: a first pass on lines 3 px apart with
     wide windows brings them onto the edge. Then full passes until the ellipse moves less than
     :data:`_CONVERGED_PX` (at most ``passes`` in all), each fit leaving when it has.
     """
@@ -393,8 +393,8 @@ def _pass(
     image noise the covariance is propagated from (None: the residuals')."""
     partial = tie is not None
     k = cur.shape[0]
-    dtype: type[np.floating[Any]] = np.float32
-    lines = _lines(cur, n_lines, rho_range, cap, dtype)
+    dtype = np.float32
+    lines = _lines(cur, n_lines, rho_range, cap)
     mean, mass, m2 = _centroids(src, lines, pol)
     lower, upper = lines.lower, lines.upper
     box = lines.step**2 / 12.0  # the forward differences' box
@@ -543,10 +543,10 @@ def _lines(
     count: NDArray[np.intp],
     rho_range: tuple[float, float],
     cap: NDArray[np.float64],
-    dtype: type[np.floating[Any]],
 ) -> _Lines:
-    """``count`` lines on every ellipse of a block, with their geometry and windows, in
-    precision ``dtype`` (see :class:`_Lines`)."""
+    """``count`` lines on every ellipse of a block, with their geometry and windows, in single
+    precision (see :class:`_Lines`)."""
+    dtype = np.float32
     m = int(count.max())
     kk = np.arange(m)[None, :]
     valid = kk < count[:, None]
@@ -560,7 +560,7 @@ def _lines(
     psi = (kk + 0.5).astype(np.float32) * (2.0 * np.pi / count[:, None]).astype(np.float32)
     ecc = (0.5 * (a64 - b64) / (a64 + b64)).astype(np.float32)
     phi = psi + ecc * np.sin(np.float32(2.0) * psi)
-    cp, sp = np.cos(phi).astype(dtype), np.sin(phi).astype(dtype)
+    cp, sp = np.cos(phi), np.sin(phi)
     # Exactly on the unit circle in the lines' precision, so that the point lies on the ellipse.
     unit = np.sqrt(cp * cp + sp * sp)
     cp /= unit
@@ -770,7 +770,6 @@ def _solve(
     k = jac.shape[0]
     # The sums in the lines' precision (a few hundred terms each: relative error ~1e-6), solved
     # in double precision.
-    t = t.astype(jac.dtype, copy=False)
     jw = jac * good[:, None, :]
     normal = (jw @ np.swapaxes(jac, 1, 2)).astype(np.float64)
     rhs = -(jw @ t[:, :, None])[:, :, 0].astype(np.float64)

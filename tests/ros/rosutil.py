@@ -219,7 +219,6 @@ class Recorder:
     """``armourcam record --out BAG ARGS...`` in its own process group; stderr read as it comes."""
 
     def __init__(self, bag: Path, *args: str) -> None:
-        self.bag = bag
         self.proc = start_armourcam(
             "record",
             "--out",
