@@ -120,7 +120,7 @@ def match_units(
     span_mm: float | None = None,
     rigid_tol_mm: float = DEFAULT_RIGID_TOL_MM,
     overturn_deg: float = DEFAULT_OVERTURN_DEG,
-    refine_passes: int = 3,
+    refine_passes: int = 12,
     rigid_gate_mm: float = 8.0,
     translation_gate_mm: float = 15.0,
     depth_slack_mm: float = 100.0,
@@ -157,7 +157,11 @@ def match_units(
     refine_passes : int
         Unit-aware passes after the first (0 for the plain matching). A pass that rules out a
         pair (a neighbour's face, :func:`_neighbour_faces_taken`) can free a fiducial whose
-        unit's motion the next pass then measures; passes stop early once one would repeat.
+        unit's motion the next pass then measures, which can take several passes to settle
+        (30 dolos-field seeds end to end: 3-10 passes; the last three rules above still
+        needed a fourth pass in some, where a still unit stayed displaced). Passes stop early
+        once one would repeat the last; where they cycle through two or more states instead,
+        the pairs the states disagree on are ruled out for one last pass.
     rigid_gate_mm, translation_gate_mm : float
         Gates of predicted fiducials (across the line of sight).
     depth_slack_mm : float
@@ -212,7 +216,9 @@ def match_units(
     excluded: set[tuple[int, int]] = set()
     held: set[str] = set()  # units looked for where they were (below)
     passes = 1
-    last_inputs: tuple[Any, ...] | None = None
+    # Each pass's inputs and the pairs its matching made, to tell a settled matching from
+    # one that cycles.
+    history: list[tuple[tuple[Any, ...], frozenset[tuple[int, int]]]] = []
     for _ in range(refine_passes):
         pred = np.full((len(baseline), 3), np.nan)
         gate = np.full(len(baseline), np.nan)
@@ -333,11 +339,21 @@ def match_units(
             # same rule gave one more still unit displaced over 30 seeds.)
             excluded -= set(in_place.items())
         inputs = (pred, gate, sorted(excluded), groups[0])
-        if last_inputs is not None and _same_inputs(inputs, last_inputs):
+        again = next(
+            (k for k, (earlier, _) in enumerate(history) if _same_inputs(inputs, earlier)), None
+        )
+        if again == len(history) - 1:
             # The pass would repeat the last one exactly (same predictions, gates, exclusions
             # and units): the matching has settled.
             break
-        last_inputs = inputs
+        if again is not None:
+            # The passes cycle: two or more states, each leading to the next (rivals for the
+            # same faces taking them in turn). Pairs made in some states of the cycle but not
+            # in all are unstable; they are ruled out and one last pass is run: a unit
+            # measured through them is reported lost rather than displaced by a coin toss.
+            made = [pairs for _, pairs in history[again:]]
+            excluded |= frozenset.union(*made) - frozenset.intersection(*made)
+            inputs = (pred, gate, sorted(excluded), groups[0])
         result = match(
             baseline,
             current,
@@ -349,6 +365,9 @@ def match_units(
         )
         units, unassigned = unit_motions(result, **kw)
         passes += 1
+        if again is not None:
+            break
+        history.append((inputs, _pairs_made(result)))
     return UnitAnalysis(result, units, unassigned, passes)
 
 
@@ -549,6 +568,15 @@ def _covered(
             if np.any((lateral <= COVER_MM) & (nearer > margin)):
                 return True
     return False
+
+
+def _pairs_made(result: MatchResult) -> frozenset[tuple[int, int]]:
+    """The matching's pairs as (baseline, current) indices."""
+    return frozenset(
+        (int(d.baseline_index), int(d.current_index))
+        for d in result.displacements
+        if d.is_match and d.baseline_index is not None and d.current_index is not None
+    )
 
 
 def _same_inputs(a: tuple[Any, ...], b: tuple[Any, ...]) -> bool:

@@ -359,3 +359,32 @@ def test_without_a_map_still_faces_keep_their_partners_in_mixed_groups() -> None
         if still[field.before.unit[f]] and seen and partner.get(f) != d.current_index:
             wrong.append((f, d.label))
     assert not wrong, wrong
+
+
+def test_passes_that_cycle_end_the_same_whatever_the_pass_limit() -> None:
+    """On this field two units take the same two faces in turn, pass after pass (one through
+    two cross-code pairs, 40 mm off its true motion): with a fixed number of passes the result
+    followed that number's parity. The pairs the cycle does not agree on are ruled out, the
+    result no longer depends on the limit, and no unit is measured through them."""
+    from benchmarks.matcher_field import poses_noisy
+
+    field = make_field(300, seed=1, diameter_mm=10.0)
+    base, cur, bid, cid = poses_noisy(field, 1)
+    umap = field.geometry.unit_map()
+    runs = [match_units(base, cur, unit_map=umap, gate_mm=50.0, refine_passes=n) for n in (7, 8)]
+    made = [
+        {(d.baseline_index, d.current_index) for d in an.result.displacements if d.is_match}
+        for an in runs
+    ]
+    assert made[0] == made[1]
+    bid, cid = np.asarray(bid), np.asarray(cid)
+    for u in runs[1].units:
+        if u.method == "none" or not u.current_indices:
+            continue
+        owners = set(field.before.unit[bid[list(u.baseline_indices)]].tolist())
+        now = set(field.after.unit[cid[list(u.current_indices)]].tolist())
+        if len(owners) == 1 and not (now - owners):
+            (tu,) = owners
+            if not field.overturned[tu]:
+                err = u.translation_mm - field.displacement_at(tu, u.reference_before_mm)
+                assert np.linalg.norm(err) < 20.0, (u.unit, err)
