@@ -617,6 +617,47 @@ def _closest_branches(
     return out_b, out_a
 
 
+def _joint_branches(
+    before: NDArray[np.float64],
+    after: NDArray[np.float64],
+    w: NDArray[np.float64],
+    nb: NDArray[np.float64],
+    na: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Pairs' branches chosen together where too few points fix the rotation.
+
+    Per pair the smallest turn is as likely on both mirrors as on both true normals (a pair
+    whose two normals are both mirrored turns about as little). Two pairs chosen apart can then
+    fit no one rotation, and the unit's second pair is dropped, its motion resting on one; or
+    both sit on their mirrors, which fit one rotation as well as the truth does (mirroring is a
+    half turn about the line of sight) but the wrong one, off by about the unit's turn, which
+    two points do not fix about the line joining them: the translation at the unit's origin is
+    then off by millimetres. So each pair's two normals are flipped to their mirrors together,
+    in every combination, and of those whose normals fit one rigid motion (within 15 deg) the
+    one whose motion carries the points best is kept (the choice apart on a tie, as for a unit
+    that did not turn; it stands where none fits).
+    """
+    k = len(before)
+    if k < 2 or k > 6:
+        return nb, na
+    lim = np.cos(np.radians(15.0))
+
+    def fit(xb: NDArray[np.float64], xa: NDArray[np.float64]) -> tuple[float, float]:
+        R, t = rigid_fit(before, after, w, xb, xa)
+        worst = float(np.min(np.einsum("ki,ki->k", xb @ R.T, xa)))
+        return worst, rms_misfit(R, t, before, after)
+
+    alt_b, alt_a = mirror_normals(before, nb), mirror_normals(after, na)
+    best: tuple[float, NDArray[np.float64], NDArray[np.float64]] | None = None
+    for flip in itertools.product((False, True), repeat=k):
+        f = np.asarray(flip)[:, None]
+        xb, xa = np.where(f, alt_b, nb), np.where(f, alt_a, na)
+        worst, misfit = fit(xb, xa)
+        if worst >= lim and (best is None or misfit < best[0]):
+            best = (misfit, xb, xa)
+    return (best[1], best[2]) if best is not None else (nb, na)
+
+
 def _branches_by_points(
     before: NDArray[np.float64],
     after: NDArray[np.float64],
@@ -634,9 +675,9 @@ def _branches_by_points(
     (a stranger among them, too few or collinear points) the choice stands.
     """
     k = len(before)
-    if k < 3 or np.linalg.matrix_rank(before - before.mean(axis=0), 1e-6) < 2:
-        return nb, na
     w = 1.0 / np.maximum(np.sum(sigma**2, axis=1), 1e-6)
+    if k < 3 or np.linalg.matrix_rank(before - before.mean(axis=0), 1e-6) < 2:
+        return _joint_branches(before, after, w, nb, na)
     R, t = rigid_fit(before, after, w)
     if rms_misfit(R, t, before, after) > 1.0:
         return nb, na

@@ -678,3 +678,36 @@ def test_targets_on_a_still_flat_sheet_all_stay_matched(seed: int) -> None:
     assert len(pairs) == 12
     assert all(d.label == "same_code" and d.baseline_index == d.current_index for d in pairs)
     assert not [u.unit for u in found.units if u.method == "none"]
+
+
+@pytest.mark.parametrize("mirrored", [(), (0, 2), (3,), (0, 1, 2, 3)])
+@pytest.mark.parametrize("turn_deg", [15.0, 25.0, 35.0])
+def test_a_unit_seen_through_two_pairs_turns_by_its_true_rotation(
+    turn_deg: float, mirrored: tuple[int, ...]
+) -> None:
+    """A unit seen through two faces turns and moves mostly along the line of sight, some of
+    its four normals (before: 0, 1; after: 2, 3) on the wrong branch. Two points leave the turn
+    about the line joining them to the normals, and each pair's branches chosen apart (the
+    smallest turn, as small on both mirrors as on the truth) gave a rotation off by about the
+    turn itself: the translation at the unit's origin was 4-10 mm off in depth (or, where the
+    two pairs' choices fit no one rotation, one pair was dropped and a motion resting on one
+    pair's depth was not counted). The branches chosen together, both pairs measure it."""
+    centre = np.array([20.0, -10.0, 1800.0])
+    before = _unit(centre, R0)[:2]
+    turn = _rot([0.4, 1.0, 0.3], turn_deg)
+    move = np.array([3.0, -5.0, -28.0])
+    codes = {int(p.code) for p in before}
+    after = [p for p in _unit(centre + move, turn @ R0) if int(p.code) in codes]
+    assert len(after) == 2
+    for k in mirrored:
+        side = before if k < 2 else after
+        side[k % 2] = _flip_normal(side[k % 2])
+    an = match_units(before, after, unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    (u,) = units
+    assert u.n_matched == 2 and u.method == "rigid"
+    ref = np.asarray(u.reference_before_mm)
+    truth = turn @ (ref - centre) + centre + move - ref
+    assert np.linalg.norm(u.translation_mm - truth) < 0.5
+    assert u.rotation_deg is not None and abs(u.rotation_deg - turn_deg) < 1.0
+    assert u.status == "displaced" and summary.displaced_units == 1
