@@ -158,8 +158,8 @@ def match_units(
         Unit-aware passes after the first (0 for the plain matching). A pass that rules out a
         pair (a neighbour's face, :func:`_neighbour_faces_taken`) can free a fiducial whose
         unit's motion the next pass then measures, which can take several passes to settle
-        (30 dolos-field seeds end to end: 3-10 passes; the last three rules above still
-        needed a fourth pass in some, where a still unit stayed displaced). Passes stop early
+        (30 dolos-field seeds end to end: 3-10 passes; one still unit stayed displaced until
+        the fourth ruled out its lone stranger by the neighbour's template). Passes stop early
         once one would repeat the last; where they cycle through two or more states instead,
         the pairs the states disagree on are ruled out for one last pass.
     rigid_gate_mm, translation_gate_mm : float

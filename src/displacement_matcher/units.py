@@ -672,7 +672,8 @@ def _branches_by_points(
     far (a 30 deg rock: each mirror lies a couple of degrees nearer than the truth), and the
     wrong normals then reverse the fitted turn. Where the points fit one rigid motion (RMS
     within 1 mm), each pair takes the branches that motion carries into each other; otherwise
-    (a stranger among them, too few or collinear points) the choice stands.
+    (a stranger among them) the choice stands; with too few or collinear points they are
+    chosen together by :func:`_joint_branches`.
     """
     k = len(before)
     w = 1.0 / np.maximum(np.sum(sigma**2, axis=1), 1e-6)
