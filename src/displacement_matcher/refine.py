@@ -219,14 +219,10 @@ def match_units(
     # Each pass's inputs and the pairs its matching made, to tell a settled matching from
     # one that cycles.
     history: list[tuple[tuple[Any, ...], frozenset[tuple[int, int]]]] = []
+    pair_of: dict[int, int] = dict(result.pairs().tolist())  # the last matching's pairs
     for _ in range(refine_passes):
         pred = np.full((len(baseline), 3), np.nan)
         gate = np.full(len(baseline), np.nan)
-        pair_of = {
-            int(d.baseline_index): int(d.current_index)
-            for d in result.displacements
-            if d.is_match and d.baseline_index is not None and d.current_index is not None
-        }
         # Units whose motion is one pair's own offset: (baseline, current) of that pair.
         lone: dict[int, int] = {}
         for u in units:
@@ -353,7 +349,6 @@ def match_units(
             # measured through them is reported lost rather than displaced by a coin toss.
             made = [pairs for _, pairs in history[again:]]
             excluded |= frozenset.union(*made) - frozenset.intersection(*made)
-            inputs = (pred, gate, sorted(excluded), groups[0])
         result = match(
             baseline,
             current,
@@ -364,10 +359,11 @@ def match_units(
             **match_kw,
         )
         units, unassigned = unit_motions(result, **kw)
+        pair_of = dict(result.pairs().tolist())
         passes += 1
         if again is not None:
             break
-        history.append((inputs, _pairs_made(result)))
+        history.append((inputs, frozenset(pair_of.items())))
     return UnitAnalysis(result, units, unassigned, passes)
 
 
@@ -532,18 +528,30 @@ def _rigid_misfit(
     """How far one rigid motion (fitted to the pairs' positions and normals, each current
     normal on its better branch: :func:`.units.branch_fit`) misses the worst pair, across the
     line of sight (mm; inf without usable normals)."""
-    before = [baseline[i] for i, _ in pairs]
-    after = [current[j] for _, j in pairs]
-    nb, na = unit_normals(before), unit_normals(after)
-    pb = np.array([p.position_mm for p in before], dtype=np.float64)
-    pa = np.array([p.position_mm for p in after], dtype=np.float64)
-    if nb is None or na is None or not (np.all(np.isfinite(pb)) and np.all(np.isfinite(pa))):
+    geometry = _paired_geometry([baseline[i] for i, _ in pairs], [current[j] for _, j in pairs])
+    if geometry is None:
         return float("inf")
+    pb, pa, nb, na = geometry
     R, t, _ = branch_fit(pb, pa, np.ones(len(pairs)), nb, na)
     off = pb @ R.T + t - pa
     return max(
         float(np.linalg.norm(across_line_of_sight(o, q))) for o, q in zip(off, pa, strict=True)
     )
+
+
+def _paired_geometry(
+    before: Sequence[FiducialPose], after: Sequence[FiducialPose]
+) -> tuple[NDArray[np.float64], ...] | None:
+    """Positions and unit normals of paired poses, before and after (``pb, pa, nb, na``), or
+    None when a normal is unusable or a position not finite."""
+    nb, na = unit_normals(before), unit_normals(after)
+    if nb is None or na is None:
+        return None
+    pb = np.array([p.position_mm for p in before], dtype=np.float64)
+    pa = np.array([p.position_mm for p in after], dtype=np.float64)
+    if not (np.all(np.isfinite(pb)) and np.all(np.isfinite(pa))):
+        return None
+    return pb, pa, nb, na
 
 
 def _covered(
@@ -568,15 +576,6 @@ def _covered(
             if np.any((lateral <= COVER_MM) & (nearer > margin)):
                 return True
     return False
-
-
-def _pairs_made(result: MatchResult) -> frozenset[tuple[int, int]]:
-    """The matching's pairs as (baseline, current) indices."""
-    return frozenset(
-        (int(d.baseline_index), int(d.current_index))
-        for d in result.displacements
-        if d.is_match and d.baseline_index is not None and d.current_index is not None
-    )
 
 
 def _same_inputs(a: tuple[Any, ...], b: tuple[Any, ...]) -> bool:
@@ -999,14 +998,10 @@ def _turned_onto(
     prediction across it): the positions, which chose nothing, are the test.
     """
     i, m = pair
-    before, after = [baseline[i], baseline[k]], [current[m], current[j]]
-    nb, na = unit_normals(before), unit_normals(after)
-    if nb is None or na is None:
+    geometry = _paired_geometry([baseline[i], baseline[k]], [current[m], current[j]])
+    if geometry is None:
         return False
-    pb = np.array([p.position_mm for p in before], dtype=np.float64)
-    pa = np.array([p.position_mm for p in after], dtype=np.float64)
-    if not (np.all(np.isfinite(pb)) and np.all(np.isfinite(pa))):
-        return False
+    pb, pa, nb, na = geometry
     alt_b, alt_a = mirror_normals(pb, nb), mirror_normals(pa, na)
     best: tuple[float, NDArray[np.float64], NDArray[np.float64]] | None = None
     for flip in itertools.product((False, True), repeat=4):

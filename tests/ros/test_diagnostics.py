@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from matcherutil import header
 from rosutil import ideal_calibration
 
 pytestmark = pytest.mark.ros
@@ -166,20 +167,20 @@ def test_recent_stamps_recognise_a_frame_seen_again_within_their_memory() -> Non
 
     from armourcam.graph import GraphError, RecentStamps
 
-    def header(sec: int, nanosec: int = 0, frame_id: str = "cam") -> Header:
+    def stamped(sec: int, nanosec: int = 0, frame_id: str = "cam") -> Header:
         h = Header(frame_id=frame_id)
         h.stamp.sec, h.stamp.nanosec = sec, nanosec
         return h
 
     seen = RecentStamps(size=3)
-    assert not any(seen.repeated(header(s)) for s in (1, 2, 3))
-    assert seen.repeated(header(2)) and seen.repeats == 1
-    assert not seen.repeated(header(2, 1))  # one nanosecond apart: another frame
-    assert not seen.repeated(header(2, frame_id="cam2"))  # another camera, same instant
+    assert not any(seen.repeated(stamped(s)) for s in (1, 2, 3))
+    assert seen.repeated(stamped(2)) and seen.repeats == 1
+    assert not seen.repeated(stamped(2, 1))  # one nanosecond apart: another frame
+    assert not seen.repeated(stamped(2, frame_id="cam2"))  # another camera, same instant
     # Memory of 3: the oldest frames are forgotten (bounded).
-    assert not seen.repeated(header(1))
+    assert not seen.repeated(stamped(1))
     # An unstamped source (zero stamps) is never taken for repeats.
-    assert not seen.repeated(header(0)) and not seen.repeated(header(0))
+    assert not seen.repeated(stamped(0)) and not seen.repeated(stamped(0))
     assert seen.repeats == 1
     with pytest.raises(GraphError, match="stamp memory"):
         RecentStamps(size=0)
@@ -188,22 +189,16 @@ def test_recent_stamps_recognise_a_frame_seen_again_within_their_memory() -> Non
 def _input_publisher(probe: Any, node: str) -> tuple[Any, Any]:
     """A publisher of ``node``'s input in the probe and a function making one frame (now)."""
     from sensor_msgs.msg import Image, PointCloud2, PointField
-    from std_msgs.msg import Header
 
     from armourcam import image_codec, records
     from armourcam.graph import record_qos, stream_qos
-
-    def header() -> Header:
-        h = Header(frame_id="cam")
-        h.stamp = probe.node.get_clock().now().to_msg()
-        return h
 
     if node == "fiducial_detector":
         pub = probe.node.create_publisher(Image, "/camera/image_raw", stream_qos("reliable", 10))
 
         def image() -> Any:
             msg = Image(**image_codec.image_to_msg_fields(np.full((120, 160), 128, np.uint8)))
-            msg.header = header()
+            msg.header = header(probe.node)
             return msg
 
         return pub, image
@@ -216,7 +211,9 @@ def _input_publisher(probe: Any, node: str) -> tuple[Any, Any]:
         "displacement_matcher": ("/armourcam/poses", records.POSE, records.poses_to_records([])),
     }[node]
     pub = probe.node.create_publisher(PointCloud2, topic, record_qos("reliable", 10))
-    return pub, lambda: records.to_pointcloud2(PointCloud2, PointField, header(), name, rows)
+    return pub, lambda: records.to_pointcloud2(
+        PointCloud2, PointField, header(probe.node), name, rows
+    )
 
 
 @pytest.mark.parametrize(
