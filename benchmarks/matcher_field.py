@@ -351,10 +351,17 @@ def poses_e2e(
 
 
 def pose_quality(state: FieldState, poses: Sequence[FiducialPose], ids: NDArray) -> str:
-    """Depth error along the ray against the claimed sigma, and normal error, of tied poses."""
-    ok = np.flatnonzero(ids >= 0)
-    if len(ok) == 0:
+    """Depth error along the ray against the claimed sigma, normal error and the share of
+    normals on the wrong branch (nearer the true normal mirrored about the line of sight, the
+    circle pose's other solution), of tied poses whose printed disc is in full view; then the
+    depth error of the tied poses a nearer fiducial's paper partly covers."""
+    tied = np.flatnonzero(ids >= 0)
+    if len(tied) == 0:
         return "no pose tied to the truth"
+    covered = state.occluded[ids[tied]]
+    ok, part = tied[~covered], tied[covered]
+    if len(ok) == 0:
+        return "no pose of a fiducial in full view tied to the truth"
     t = state.position_mm[ids[ok]]
     ray = t / np.linalg.norm(t, axis=1, keepdims=True)
     p = np.array([poses[k].position_mm for k in ok])
@@ -362,13 +369,26 @@ def pose_quality(state: FieldState, poses: Sequence[FiducialPose], ids: NDArray)
     ez = np.abs(np.einsum("ki,ki->k", p - t, ray))
     sz = np.sqrt(np.einsum("ki,kij,kj->k", ray, cov, ray))
     n = np.array([poses[k].normal for k in ok])
-    ang = np.degrees(np.arccos(np.clip(np.einsum("ki,ki->k", n, state.normal[ids[ok]]), -1, 1)))
+    true_n = state.normal[ids[ok]]
+    mirrored = 2.0 * np.einsum("ki,ki->k", true_n, ray)[:, None] * ray - true_n
+    cos_true = np.einsum("ki,ki->k", n, true_n)
+    ang = np.degrees(np.arccos(np.clip(cos_true, -1, 1)))
+    wrong = cos_true < np.einsum("ki,ki->k", n, mirrored)
     e50, e95 = np.percentile(ez, [50, 95])
     a50, a95 = np.percentile(ang, [50, 95])
-    return (
-        f"depth error median {e50:.2f} / 95 % {e95:.2f} mm vs claimed sigma median "
-        f"{np.median(sz):.2f} mm; normal error median {a50:.1f} / 95 % {a95:.1f} deg"
+    text = (
+        f"in full view: depth error median {e50:.2f} / 95 % {e95:.2f} mm vs claimed sigma "
+        f"median {np.median(sz):.2f} mm; normal error median {a50:.1f} / 95 % {a95:.1f} deg, "
+        f"{100.0 * wrong.mean():.0f} % on the mirrored branch"
     )
+    if len(part):
+        tp = state.position_mm[ids[part]]
+        rp = tp / np.linalg.norm(tp, axis=1, keepdims=True)
+        pp = np.array([poses[k].position_mm for k in part])
+        ep = np.abs(np.einsum("ki,ki->k", pp - tp, rp))
+        p50, p95 = np.percentile(ep, [50, 95])
+        text += f"; {len(part)} partly covered: depth error median {p50:.1f} / 95 % {p95:.1f} mm"
+    return text
 
 
 def main() -> None:
