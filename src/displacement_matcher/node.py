@@ -307,7 +307,11 @@ class DisplacementMatcherNode(Node):
         self._pub_baseline = self.create_publisher(PointCloud2, cfg.baseline_topic, latched)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         qos = record_qos(cfg.qos, cfg.queue_depth)
-        self.create_subscription(PointCloud2, cfg.poses_topic, self._on_poses, qos)
+        poses = self.create_subscription(PointCloud2, cfg.poses_topic, self._on_poses, qos)
+        self.get_logger().info(  # the names as remapped, as the other nodes say theirs
+            f"matching poses from {poses.topic_name} -> {self._pub_disp.topic_name}, "
+            f"{self._pub_markers.topic_name}, {self._pub_report.topic_name}"
+        )
         # Hall state is latched: a (re)started matcher is told the current state. Events older
         # than this process are history already covered by the resumed session, except the
         # latest state (a run may be in progress): see _apply_history.

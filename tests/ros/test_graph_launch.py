@@ -91,9 +91,26 @@ def test_nodes_end_when_the_launcher_is_killed(tmp_path: Path) -> None:
         deadline = time.monotonic() + 20.0
         while not all(_gone(k) for k in kids) and time.monotonic() < deadline:
             time.sleep(0.1)
-        assert all(_gone(k) for k in kids), [k for k in kids if not _gone(k)]
+        assert all(_gone(k) for k in kids), [_state(k) for k in kids if not _gone(k)]
     finally:
         _end(launcher, kids)
+
+
+def _state(pid: int) -> str:
+    """What a process left running is doing: its command line, state and kernel wait channel,
+    for the assertion message."""
+    proc = Path(f"/proc/{pid}")
+    try:
+        cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        status = [
+            line
+            for line in (proc / "status").read_text().splitlines()
+            if line.startswith(("State:", "Threads:", "SigPnd:", "ShdPnd:", "SigCgt:"))
+        ]
+        wchan = (proc / "wchan").read_text()
+    except OSError as err:
+        return f"{pid}: {err}"
+    return f"{pid} {cmd.strip()}: {'; '.join(status)}; wchan {wchan}"
 
 
 # ---------------------------------------------------------------------- respawn
