@@ -73,6 +73,7 @@ from displacement_matcher.rigid import kabsch
 from displacement_matcher.types import Displacement, MatchResult
 from displacement_matcher.units import (
     assign_units,
+    mirror_normals,
     unit_motions,
 )
 from pose_estimator.types import FiducialPose
@@ -352,9 +353,9 @@ def poses_e2e(
 
 def pose_quality(state: FieldState, poses: Sequence[FiducialPose], ids: NDArray) -> str:
     """Depth error along the ray against the claimed sigma, normal error and the share of
-    normals on the wrong branch (nearer the true normal mirrored about the line of sight, the
-    circle pose's other solution), of tied poses whose printed disc is in full view; then the
-    depth error of the tied poses a nearer fiducial's paper partly covers."""
+    normals on the wrong branch (nearer the true normal's mirror,
+    :func:`displacement_matcher.units.mirror_normals`), of tied poses whose printed disc is in
+    full view; then the depth error of the tied poses a nearer fiducial's paper partly covers."""
     tied = np.flatnonzero(ids >= 0)
     if len(tied) == 0:
         return "no pose tied to the truth"
@@ -362,17 +363,14 @@ def pose_quality(state: FieldState, poses: Sequence[FiducialPose], ids: NDArray)
     ok, part = tied[~covered], tied[covered]
     if len(ok) == 0:
         return "no pose of a fiducial in full view tied to the truth"
-    t = state.position_mm[ids[ok]]
-    ray = t / np.linalg.norm(t, axis=1, keepdims=True)
-    p = np.array([poses[k].position_mm for k in ok])
+    ez, ray = _depth_errors(state, poses, ids, ok)
     cov = np.array([poses[k].covariance_mm2 for k in ok])
-    ez = np.abs(np.einsum("ki,ki->k", p - t, ray))
     sz = np.sqrt(np.einsum("ki,kij,kj->k", ray, cov, ray))
     n = np.array([poses[k].normal for k in ok])
     true_n = state.normal[ids[ok]]
-    mirrored = 2.0 * np.einsum("ki,ki->k", true_n, ray)[:, None] * ray - true_n
     cos_true = np.einsum("ki,ki->k", n, true_n)
     ang = np.degrees(np.arccos(np.clip(cos_true, -1, 1)))
+    mirrored = mirror_normals(state.position_mm[ids[ok]], true_n)
     wrong = cos_true < np.einsum("ki,ki->k", n, mirrored)
     e50, e95 = np.percentile(ez, [50, 95])
     a50, a95 = np.percentile(ang, [50, 95])
@@ -382,13 +380,20 @@ def pose_quality(state: FieldState, poses: Sequence[FiducialPose], ids: NDArray)
         f"{100.0 * wrong.mean():.0f} % on the mirrored branch"
     )
     if len(part):
-        tp = state.position_mm[ids[part]]
-        rp = tp / np.linalg.norm(tp, axis=1, keepdims=True)
-        pp = np.array([poses[k].position_mm for k in part])
-        ep = np.abs(np.einsum("ki,ki->k", pp - tp, rp))
-        p50, p95 = np.percentile(ep, [50, 95])
+        p50, p95 = np.percentile(_depth_errors(state, poses, ids, part)[0], [50, 95])
         text += f"; {len(part)} partly covered: depth error median {p50:.1f} / 95 % {p95:.1f} mm"
     return text
+
+
+def _depth_errors(
+    state: FieldState, poses: Sequence[FiducialPose], ids: NDArray, rows: NDArray
+) -> tuple[NDArray, NDArray]:
+    """Absolute depth errors (along the ray to the true position) of poses ``rows``, and those
+    unit rays."""
+    t = state.position_mm[ids[rows]]
+    ray = t / np.linalg.norm(t, axis=1, keepdims=True)
+    p = np.array([poses[k].position_mm for k in rows])
+    return np.abs(np.einsum("ki,ki->k", p - t, ray)), ray
 
 
 def main() -> None:

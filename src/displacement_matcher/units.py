@@ -641,19 +641,16 @@ def _joint_branches(
     if k < 2 or k > 6:
         return nb, na
     lim = np.cos(np.radians(15.0))
-
-    def fit(xb: NDArray[np.float64], xa: NDArray[np.float64]) -> tuple[float, float]:
-        R, t = rigid_fit(before, after, w, xb, xa)
-        worst = float(np.min(np.einsum("ki,ki->k", xb @ R.T, xa)))
-        return worst, rms_misfit(R, t, before, after)
-
     alt_b, alt_a = mirror_normals(before, nb), mirror_normals(after, na)
     best: tuple[float, NDArray[np.float64], NDArray[np.float64]] | None = None
     for flip in itertools.product((False, True), repeat=k):
         f = np.asarray(flip)[:, None]
         xb, xa = np.where(f, alt_b, nb), np.where(f, alt_a, na)
-        worst, misfit = fit(xb, xa)
-        if worst >= lim and (best is None or misfit < best[0]):
+        R, t = rigid_fit(before, after, w, xb, xa)
+        if np.min(np.einsum("ki,ki->k", xb @ R.T, xa)) < lim:
+            continue
+        misfit = rms_misfit(R, t, before, after)
+        if best is None or misfit < best[0]:
             best = (misfit, xb, xa)
     return (best[1], best[2]) if best is not None else (nb, na)
 
