@@ -34,6 +34,7 @@ Pixel convention: ``(u, v)`` = (x, y) = (column, row), pixel centres at integer 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -82,6 +83,8 @@ _MIN_GAP_SPREADS = 2.25
 ANNULUS_TIE_PX = 0.1
 #: An inner edge whose fitted sd exceeds this fraction of the prior's was not seen by the data.
 _SEEN_FRACTION = 0.5
+#: Fewest band pixels of a sector for its residual to be reported (see EdgeFits.sector_chi).
+_MIN_SECTOR_PIXELS = 4
 #: Fits per padded block: blocks of similar size keep the padding small.
 _BLOCK = 256
 _SQRT_2_PI = float(np.sqrt(2.0 / np.pi))
@@ -107,6 +110,10 @@ class EdgeFits:
         Band pixels used in the final iteration.
     ok : (n,) ndarray of bool
         False where the fit failed (too few pixels, singular, diverged, wrong polarity).
+    sector_chi : (n, S) ndarray or None
+        Where asked for (``sectors=S``), the RMS residual over the noise of each of ``S`` equal
+        sectors of image angle about the seed's centre, at the final fit (failed or not) and
+        over every band pixel of the sector, hidden ones too (NaN: too few pixels).
     """
 
     params: NDArray[np.float64]
@@ -116,6 +123,7 @@ class EdgeFits:
     chi: NDArray[np.float64]
     pixels: NDArray[np.intp]
     ok: NDArray[np.bool_]
+    sector_chi: NDArray[np.float64] | None = None
 
     def __len__(self) -> int:
         return int(self.ok.shape[0])
@@ -194,6 +202,8 @@ def refine_annuli(
     rho_range: tuple[float, float] = (0.0, np.inf),
     iterations: int = 4,
     tie_px: float = ANNULUS_TIE_PX,
+    hidden: NDArray[np.bool_] | None = None,
+    sectors: int = 0,
 ) -> tuple[EdgeFits, EdgeFits]:
     """Refine both edges of printed annuli together (the ``ring`` design's pose annulus).
 
@@ -222,6 +232,13 @@ def refine_annuli(
         than this at fiducial sizes; it keeps the fit well posed where the inner edge itself is
         masked out (too close to the printed code, small or oblique fiducials) and is negligible
         wherever the inner edge is seen.
+    hidden : (n, S) ndarray of bool, optional
+        Sectors of image angle about each outer seed's centre (``S`` equal ones, the first
+        starting at +u and turning towards +v) whose pixels the fit leaves out: where something
+        nearer covers the annulus.
+    sectors : int
+        With ``S > 0``, the fits' ``sector_chi`` over ``S`` such sectors (``S`` must match
+        ``hidden``'s).
 
     Returns
     -------
@@ -237,6 +254,16 @@ def refine_annuli(
     polarity = np.full(outer.shape[0], 1.0 if dark_annulus else -1.0)
     if not tie_px > 0:
         raise DetectorError(f"tie_px must be positive, got {tie_px}")
+    if hidden is not None:
+        hidden = np.asarray(hidden, dtype=bool)
+        sectors = sectors or (hidden.shape[1] if hidden.ndim == 2 else 0)
+        if hidden.shape != (outer.shape[0], sectors) or sectors < 1:
+            raise DetectorError(
+                f"hidden must be an (n, sectors) boolean array for {outer.shape[0]} seeds and "
+                f"{sectors} sectors, got shape {hidden.shape}"
+            )
+    if sectors < 0:
+        raise DetectorError(f"sectors must be non-negative, got {sectors}")
     fits = _refine(
         image,
         np.stack([outer, inner], axis=1),
@@ -247,6 +274,8 @@ def refine_annuli(
         rho_range,
         iterations,
         tie_px,
+        hidden,
+        sectors,
     )
     return fits[0], fits[1]
 
@@ -292,9 +321,12 @@ def _refine(
     rho_range: tuple[float, float],
     iterations: int,
     tie_px: float = 0.0,
+    hidden: NDArray[np.bool_] | None = None,
+    sectors: int = 0,
 ) -> list[EdgeFits]:
     """Common core: ``seeds`` is ``(n, E, 5)``, outermost edge first; ``signs`` the sign of each
-    edge's step in the model (+1 the outermost)."""
+    edge's step in the model (+1 the outermost); ``hidden`` and ``sectors`` as in
+    :func:`refine_annuli`."""
     img = checked_image(image)
     if not (np.isfinite(noise_std) and noise_std > 0):
         raise DetectorError(f"noise_std must be a positive number, got {noise_std}")
@@ -305,6 +337,9 @@ def _refine(
     lo, hi = checked_rho_range(rho_range)
     n, n_edges = seeds.shape[0], seeds.shape[1]
     outs = [EdgeFits.blank(n) for _ in range(n_edges)]
+    sector_chi = np.full((n, sectors), np.nan) if sectors > 0 else None
+    if sector_chi is not None:
+        outs = [dataclasses.replace(o, sector_chi=sector_chi) for o in outs]
     usable = np.all(np.isfinite(seeds), axis=(1, 2))
     usable &= np.all(seeds[:, :, 3] > 0.5, axis=1) & np.all(
         seeds[:, :, 2] >= seeds[:, :, 3], axis=1
@@ -322,6 +357,13 @@ def _refine(
     counts = np.bincount(fit, minlength=idx.size)
     starts = np.cumsum(counts) - counts
     intensity = img[pv, pu].astype(np.float32)
+    sector = None
+    if sectors > 0:
+        ang = np.arctan2(pv - out_e[fit, 1], pu - out_e[fit, 0])
+        sector = (np.floor(ang * (sectors / (2.0 * np.pi))).astype(np.intp)) % sectors
+    shown = np.ones(fit.size, dtype=bool)
+    if hidden is not None and sector is not None:
+        shown = ~hidden[idx[fit], sector]
     # Blocks of fits with similar pixel counts, each padded to its largest.
     order = np.argsort(counts, kind="stable")
     for first in range(0, idx.size, _BLOCK):
@@ -330,8 +372,9 @@ def _refine(
         if length == 0:
             continue
         pos = np.arange(length)
-        valid = pos[None, :] < counts[blk, None]
-        take = np.where(valid, starts[blk, None] + pos[None, :], 0)
+        gathered = pos[None, :] < counts[blk, None]
+        take = np.where(gathered, starts[blk, None] + pos[None, :], 0)
+        valid = gathered & shown[take]
         res = _gauss_newton(
             seeds[idx[blk]],
             signs,
@@ -345,8 +388,11 @@ def _refine(
             float(noise_std),
             iterations,
             tie_px,
+            None if sector is None else (np.where(gathered, sector[take], -1), sectors),
         )
         j = idx[blk]
+        if sector_chi is not None and res.sector_chi is not None:
+            sector_chi[j] = res.sector_chi
         for e, out in enumerate(outs):
             out.params[j], out.covariance[j] = res.params[:, e], res.covariance[:, e]
             out.contrast[j], out.spread[j], out.chi[j] = res.contrast, res.spread, res.chi
@@ -368,6 +414,7 @@ class _BlockFit:
     chi: NDArray[np.float64]
     pixels: NDArray[np.intp]
     ok: NDArray[np.bool_]
+    sector_chi: NDArray[np.float64] | None = None
 
 
 def _gauss_newton(
@@ -383,8 +430,11 @@ def _gauss_newton(
     sigma: float,
     iterations: int,
     tie_px: float,
+    sectors: tuple[NDArray[np.intp], int] | None = None,
 ) -> _BlockFit:
-    """Fit one padded block: ``pu, pv, intensity, valid`` are ``(k, L)``; seeds ``(k, E, 5)``.
+    """Fit one padded block: ``pu, pv, intensity, valid`` are ``(k, L)``; seeds ``(k, E, 5)``;
+    ``sectors``, where given, each gathered pixel's sector (-1: padding) and their number, for
+    the residuals by sector at the end (over every gathered pixel, ``valid`` or not).
 
     Each edge's geometry is parametrised as its centre and the quadratic form
     ``Q = [[A, B], [B, C]]`` of ``(p - c)^T Q (p - c) = 1``: smooth at circles, where the axis
@@ -495,7 +545,11 @@ def _gauss_newton(
     ok &= good & finite & (theta[:, ih] * polarity > 5.0 * h_sd)
     ok &= np.nan_to_num(drift, nan=np.inf) <= 2.0 * (band + _GATHER_SLACK_PX)
     ok &= np.all(np.nan_to_num(params[:, :, 3], nan=0.0) > 0.5, axis=1)
-    return _BlockFit(params, cov, 2.0 * theta[:, ih], theta[:, isp], chi, count, ok)
+    by_sector = None
+    if sectors is not None:
+        label, n_sectors = sectors
+        by_sector = model.sector_chi(theta, du0, dv0, intensity, label, n_sectors) / sigma
+    return _BlockFit(params, cov, 2.0 * theta[:, ih], theta[:, isp], chi, count, ok, by_sector)
 
 
 class _EdgeModel:
@@ -617,6 +671,30 @@ class _EdgeModel:
         count = mask.sum(axis=1)
         rms = np.sqrt(np.einsum("kl,kl->k", resid, resid) / np.maximum(count - npar, 1))
         return normal, rhs, count.astype(np.intp), rms.astype(np.float64)
+
+    def sector_chi(
+        self,
+        theta: NDArray[np.float64],
+        du0: NDArray[np.float32],
+        dv0: NDArray[np.float32],
+        intensity: NDArray[np.float32],
+        label: NDArray[np.intp],
+        n_sectors: int,
+    ) -> NDArray[np.float64]:
+        """RMS residual of each fit's pixels in each sector (``label``: a pixel's sector, -1
+        none), over the pixels the model would use at ``theta``; NaN below a few pixels."""
+        im, ih = self.npar - 3, self.npar - 2
+        _, mask, step_sum, _, _ = self._terms(theta, du0, dv0, label >= 0)
+        resid = intensity - (theta[:, im : im + 1] + theta[:, ih : ih + 1] * step_sum)
+        k = theta.shape[0]
+        flat = np.where(mask, label + n_sectors * np.arange(k)[:, None], k * n_sectors)
+        size = k * n_sectors + 1
+        sums = np.bincount(flat.ravel(), weights=(resid * resid).ravel(), minlength=size)
+        counts = np.bincount(flat.ravel(), minlength=size)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rms = np.sqrt(sums[:-1] / counts[:-1]).reshape(k, n_sectors)
+        rms[counts[:-1].reshape(k, n_sectors) < _MIN_SECTOR_PIXELS] = np.nan
+        return rms
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -162,6 +162,60 @@ def test_dot_track_arc_against_truth(size: float, slant: float) -> None:
         assert np.min(np.sqrt(np.linalg.eigvalsh(arc.covariance[:4, :4]))) < 0.02
 
 
+def test_partly_covered_annulus_is_fitted_on_its_visible_arc() -> None:
+    """A fiducial whose annulus a nearer fiducial's paper partly covers (a crowded field at 33 px)
+    gets its pose circle from the arc still seen, as well as one in full view."""
+    rng = np.random.default_rng(4)
+    z = FOCAL_PX * DIAMETER_MM / 33.0
+    r_px = 16.5
+    camera = CameraModel.ideal(900, 600, FOCAL_PX)
+    targets, covered = [], []
+    for row in range(3):
+        for col in range(4):
+            u, v = 120 + 210 * col, 110 + 190 * row
+            slant = np.radians(rng.uniform(0, 50))
+            rot = rotation_from_slant_tilt(slant, rng.uniform(0, np.pi), rng.uniform(0, 2 * np.pi))
+            far = np.array([(u - 450) * z / FOCAL_PX, (v - 300) * z / FOCAL_PX, z])
+            targets.append(Target(int(rng.integers(66)), "ring", DIAMETER_MM, rot, far))
+            if (row + col) % 2:
+                continue
+            # A nearer fiducial beside it, its paper (1.3 outer radii) reaching 0.15-0.25 outer
+            # radii into this one's printed disc: over its annulus, short of its code track.
+            covered.append(len(targets) - 1)
+            ang = rng.uniform(0, 2 * np.pi)
+            d = rng.uniform(2.05, 2.15) * r_px
+            zn = z - 30.0
+            near = np.array(
+                [
+                    (u + d * np.cos(ang) - 450) * zn / FOCAL_PX,
+                    (v + d * np.sin(ang) - 300) * zn / FOCAL_PX,
+                    zn,
+                ]
+            )
+            targets.append(Target(int(rng.integers(66)), "ring", DIAMETER_MM, np.eye(3), near))
+    scene = render(camera, targets, blur_sigma=0.5, noise=0.01, rng=rng)
+    found = detect(scene.image)
+    errors = []
+    for k in covered:
+        truth = scene.truth[k]
+        (det,) = [d for d in found if np.hypot(*(np.asarray(d.center_px) - truth.center_px)) < 2.0]
+        assert det.code == truth.code
+        u, v, a, b, _ = ellipse_from_conic(truth.conics[0])
+        ell = det.ellipses[0]
+        errors.append(
+            (
+                np.hypot(ell.center_px[0] - u, ell.center_px[1] - v),
+                np.sqrt(ell.semi_major * ell.semi_minor) - np.sqrt(a * b),
+            )
+        )
+    # Before the covered sectors were left out, three of the six were 0.23-0.39 px off centre and
+    # 0.09-0.19 px off in size (the other three 0.01-0.02): the pose circle of one in full view
+    # is within 0.004 px (centre) and 0.007 px (size) at this size, median.
+    errors = np.abs(np.array(errors))
+    assert np.all(errors[:, 0] < 0.05), np.round(errors, 4)
+    assert np.all(errors[:, 1] < 0.03), np.round(errors, 4)
+
+
 def test_rotation_fronto_parallel() -> None:
     """``rotation`` is the image angle of the printed +x axis (the sector 15 / 0 boundary)."""
     for spin in np.radians([0.0, 30.0, 100.0, 250.0]):

@@ -145,6 +145,50 @@ def test_unfittable_seeds_fail_cleanly_and_bad_arguments_raise() -> None:
         refine_ellipses(np.zeros((8, 8, 3)), seed, dark_inside=True, noise_std=1.0)
     with pytest.raises(DetectorError, match="alike"):
         refine_annuli(flat, seed, np.zeros((2, 5)), dark_annulus=True, noise_std=1.0)
+    with pytest.raises(DetectorError, match="hidden"):
+        refine_annuli(
+            flat, seed, seed, dark_annulus=True, noise_std=1.0, hidden=np.zeros((2, 16), bool)
+        )
+
+
+def test_sector_residuals_show_a_covered_arc_and_hiding_it_restores_the_fit() -> None:
+    """A nearer fiducial's white paper over the right of a 34 px ring's annulus: the sectors it
+    covers fit the model by many noise sds, the fit they pull is 0.3 px off; with them hidden
+    the rest of the annulus puts the ellipse within 0.03 px and fits like a clean edge."""
+    scene = render_one("ring", 34, 30, 0.6, 0.01, 5)
+    outer = true_ellipse(scene, 0)
+    image = scene.image.astype(np.float64)
+    rows, cols = np.mgrid[: image.shape[0], : image.shape[1]]
+    u, v, a = outer[0], outer[1], outer[2]
+    paper = np.hypot(cols - (u + 2.1 * a), rows - v) < 1.3 * a
+    image[paper] = image.max()
+    so = coarse_seed(outer, np.random.default_rng(2))
+    si = so.copy()
+    si[2:4] *= 0.8
+    kw = {"dark_annulus": True, "noise_std": 0.01 * 255, "rho_range": (0.9375, 1.15)}
+    fo, _ = refine_annuli(image, so[None], si[None], iterations=8, sectors=16, **kw)
+    assert fo.sector_chi is not None and fo.sector_chi.shape == (1, 16)
+    # Sectors of image angle about the seed's centre, the first from +u towards +v: the paper
+    # lies across sectors 15, 0 (and the blur of its edge reaches 1 and 14).
+    angle = np.arctan2(rows - so[1], cols - so[0])
+    sector = np.floor(angle * 16 / (2 * np.pi)).astype(int) % 16
+    covered = np.zeros(16, dtype=bool)
+    covered[np.unique(sector[paper & (np.hypot(cols - u, rows - v) < 1.2 * a)])] = True
+    assert covered.sum() <= 4
+    assert np.all(fo.sector_chi[0, covered] > 10.0), np.round(fo.sector_chi[0], 1)
+    assert np.max(abs_errors(fo.params[0], outer)) > 0.2
+    hidden = covered | np.roll(covered, 1) | np.roll(covered, -1)
+    fh, _ = refine_annuli(
+        image, so[None], si[None], iterations=8, sectors=16, hidden=hidden[None], **kw
+    )
+    assert fh.ok[0]
+    assert np.all(abs_errors(fh.params[0], outer) < 0.03), fh.params[0] - outer
+    assert fh.chi[0] < 1.5 and fo.chi[0] > 5.0
+    assert fh.sector_chi is not None
+    assert np.all(fh.sector_chi[0, ~hidden] < 2.0), np.round(fh.sector_chi[0], 1)
+    # What the fit left out is still measured: where the paper lies, it does not fit.
+    assert covered[0] and covered[15]
+    assert np.all(fh.sector_chi[0, [15, 0]] > 10.0), np.round(fh.sector_chi[0], 1)
 
 
 @pytest.mark.parametrize("blur", [0.5, 0.7])
