@@ -783,7 +783,7 @@ def _fit_small_annulus(
     # and the offset between concentric circles' centres that perspective makes is what tells
     # the pose's two solutions apart (with it, 48 % of the field's normals were over 10 deg off,
     # against 35 % with the dual conic's).
-    pose, _, fits = _refine_annulus(
+    pose, second, fits = _refine_annulus(
         grey,
         noise,
         design,
@@ -795,7 +795,7 @@ def _fit_small_annulus(
     chi = np.array([e.rms_residual if e is not None else np.nan for e in pose])
     if np.any(np.isfinite(chi)):
         typical = max(float(np.nanmedian(chi)), 1.0)
-        pose = _uncovered_annuli(grey, noise, design, seeds, pose, fits, typical)
+        pose, _ = _uncovered_annuli(grey, noise, design, seeds, pose, second, fits, typical)
         chi = np.array([e.rms_residual if e is not None else np.nan for e in pose])
         # A fit whose residuals still far exceed the other fiducials' in the image was not
         # fitting an annulus (RMS 23-49 noise sds against 1-1.3 on the synthetic field, 5-6 on
@@ -995,7 +995,16 @@ def _fit_edge_model(
         # the second circle: both edges are fitted together (thin when seen obliquely).
         inner_seeds = seeds.copy()
         inner_seeds[:, 2:4] *= design.circles[1].radius / r0
-        pose, second, _ = _refine_annulus(grey, noise, design, seeds, inner_seeds)
+        pose, second, fits = _refine_annulus(
+            grey, noise, design, seeds, inner_seeds, sectors=COVER_SECTORS
+        )
+        chi = np.array([e.rms_residual if e is not None else np.nan for e in pose])
+        if np.any(np.isfinite(chi)):
+            # At 60 px a nearer fiducial's paper over part of the annulus pulled it 0.1-1.1 px.
+            typical = max(float(np.nanmedian(chi)), 1.0)
+            pose, second = _uncovered_annuli(
+                grey, noise, design, seeds, pose, second, fits, typical
+            )
     else:
         pose = _refine_circle(grey, noise, design, 0, seeds)
         second = [None] * len(pose)
@@ -1015,8 +1024,8 @@ def _fit_edge_model(
     for k in rest:
         inner = base.copy()
         inner[:, 2:4] *= design.circles[k].radius / r0
-        fits = _refine_circle(grey, noise, design, k, inner)
-        for j, e in zip(found, fits, strict=True):
+        circle_fits = _refine_circle(grey, noise, design, k, inner)
+        for j, e in zip(found, circle_fits, strict=True):
             if e is not None:
                 groups[j].append(e)
     return [tuple(g) for g in groups]
@@ -1060,11 +1069,13 @@ def _uncovered_annuli(
     design: FiducialDesign,
     seeds: NDArray[Any],
     pose: list[Ellipse | None],
+    second: list[Ellipse | None],
     fits: EdgeFits,
     typical: float,
-) -> list[Ellipse | None]:
+) -> tuple[list[Ellipse | None], list[Ellipse | None]]:
     """Annulus fits refitted without the sectors something nearer covers (a neighbour's paper, a
-    unit's arm): ``pose`` with those replaced.
+    unit's arm): ``pose`` and ``second`` (the annuli's outer and inner edges, and ``fits`` the
+    outer edges' with their residuals by sector) with those replaced.
 
     The covered part of an annulus fits its model by tens of noise sds where the rest fits by
     one or two (in a crowded field at 33 px: the worst sector of a fiducial in full view at most
@@ -1079,7 +1090,7 @@ def _uncovered_annuli(
     left, says how much less it knows.
     """
     if fits.sector_chi is None:
-        return pose
+        return pose, second
     limit = COVER_CHI * typical
     by_sector = np.nan_to_num(fits.sector_chi, nan=0.0)
     # Only fits that converged near their seeds: one the covered part sent astray gives no
@@ -1088,14 +1099,14 @@ def _uncovered_annuli(
     found = np.array([e is not None for e in pose])
     rows = np.flatnonzero(found & (by_sector.max(axis=1) > limit))
     if rows.size == 0:
-        return pose
+        return pose, second
     worst = by_sector[rows]
     hidden = worst > np.maximum(limit, COVER_RELATIVE * worst.max(axis=1))[:, None]
     # The sectors next to the worst share its boundary's blur.
     hidden |= np.roll(hidden, 1, axis=1) | np.roll(hidden, -1, axis=1)
     start = np.array([_parameters(pose[j]) for j in rows.tolist()])  # type: ignore[arg-type]
     r0 = design.pose_circle.radius
-    out = list(pose)
+    out, out_second = list(pose), list(second)
     # Rows still changing which sectors they hide; each keeps the refit of its last round.
     active = np.arange(rows.size)
     for _ in range(COVER_ROUNDS):
@@ -1103,7 +1114,7 @@ def _uncovered_annuli(
         inner = start[active].copy()
         inner[:, 2:4] *= design.circles[1].radius / r0
         used = hidden[active]
-        refit, _, fo = _refine_annulus(
+        refit, refit_second, fo = _refine_annulus(
             grey,
             noise,
             design,
@@ -1120,7 +1131,9 @@ def _uncovered_annuli(
             & (used.sum(axis=1) <= COVER_MAX_HIDDEN)
         )
         for n, j in enumerate(now_rows.tolist()):
-            out[j] = refit[n] if accept[n] else pose[j]
+            out[j], out_second[j] = (
+                (refit[n], refit_second[n]) if accept[n] else (pose[j], second[j])
+            )
         now = np.nan_to_num(fo.sector_chi, nan=0.0)  # type: ignore[arg-type]
         shown = np.where(used, 0.0, now)
         stands_out = ~used & (now > np.maximum(limit, COVER_RELATIVE * shown.max(axis=1))[:, None])
@@ -1132,7 +1145,7 @@ def _uncovered_annuli(
         active = active[np.any(update != used, axis=1) & fo.ok]
         if active.size == 0:
             break
-    return out
+    return out, out_second
 
 
 def _refine_circle(
