@@ -359,8 +359,11 @@ def _refine(
     intensity = img[pv, pu].astype(np.float32)
     sector = None
     if sectors > 0:
-        ang = np.arctan2(pv - out_e[fit, 1], pu - out_e[fit, 0])
-        sector = (np.floor(ang * (sectors / (2.0 * np.pi))).astype(np.intp)) % sectors
+        # Single precision: a sector is 22 degrees wide, the pixels' angles are exact to 1e-6.
+        dv = (pv - out_e[fit, 1]).astype(np.float32)
+        du = (pu - out_e[fit, 0]).astype(np.float32)
+        turns = np.arctan2(dv, du) * np.float32(sectors / (2.0 * np.pi))
+        sector = np.floor(turns).astype(np.intp) % sectors
     shown = np.ones(fit.size, dtype=bool)
     if hidden is not None and sector is not None:
         shown = ~hidden[idx[fit], sector]
@@ -465,6 +468,14 @@ def _gauss_newton(
     count = np.zeros(k, dtype=np.intp)
     chi = np.full(k, np.nan)
     model = _EdgeModel(signs, band32, (f32(lo), f32(hi)), (gap_in, gap_out))
+    by_sector = None
+    in_loop = False
+    if sectors is not None:
+        label, n_sectors = sectors
+        by_sector = np.full((k, n_sectors), np.nan)
+        # Nothing hidden: each fit's last evaluation (its step after it under 1e-3 px) gives its
+        # residuals by sector at no extra cost.
+        in_loop = bool(np.array_equal(valid, label >= 0))
     # Fits that have converged leave the batch: later iterations cost only what still moves.
     rows = np.arange(k)
     for it in range(iterations + 1):
@@ -473,7 +484,7 @@ def _gauss_newton(
         coarse = it < iterations - 1 and it < _COARSE_ITERATIONS
         px = slice(None, None, 2) if coarse else slice(None)
         theta_rows = theta[rows]
-        nrm, rhs, cnt, rms_rows = model.normal_equations(
+        nrm, rhs, cnt, rms_rows, resid, mask = model.normal_equations(
             theta_rows,
             du0[rows, px],
             dv0[rows, px],
@@ -486,6 +497,8 @@ def _gauss_newton(
             theta[rows] = theta_rows  # with the levels the first evaluation started from
         normal[rows], count[rows], chi[rows] = nrm, cnt, rms_rows / sigma
         if it == iterations:
+            if in_loop and by_sector is not None:
+                by_sector[rows] = _rms_by_sector(resid, mask, label[rows, px], n_sectors)
             break
         # Marquardt damping of the diagonal keeps early steps short where the model is poor.
         diag = np.einsum("kii->ki", nrm)
@@ -515,6 +528,11 @@ def _gauss_newton(
         theta[rows] += step
         theta[rows, isp] = np.clip(theta[rows, isp], _MIN_SPREAD_PX, _MAX_SPREAD_PX)
         moving = ok[rows] & ((shift > _CONVERGED_PX) | coarse)
+        if in_loop and by_sector is not None and not np.all(moving):
+            done = ~moving
+            by_sector[rows[done]] = _rms_by_sector(
+                resid[done], mask[done], label[rows[done], px], n_sectors
+            )
         rows = rows[moving]
         if rows.size == 0:
             break
@@ -545,10 +563,10 @@ def _gauss_newton(
     ok &= good & finite & (theta[:, ih] * polarity > 5.0 * h_sd)
     ok &= np.nan_to_num(drift, nan=np.inf) <= 2.0 * (band + _GATHER_SLACK_PX)
     ok &= np.all(np.nan_to_num(params[:, :, 3], nan=0.0) > 0.5, axis=1)
-    by_sector = None
-    if sectors is not None:
-        label, n_sectors = sectors
-        by_sector = model.sector_chi(theta, du0, dv0, intensity, label, n_sectors) / sigma
+    if by_sector is not None and sectors is not None:
+        if not in_loop:
+            by_sector = model.sector_chi(theta, du0, dv0, intensity, *sectors)
+        by_sector = by_sector / sigma
     return _BlockFit(params, cov, 2.0 * theta[:, ih], theta[:, isp], chi, count, ok, by_sector)
 
 
@@ -631,9 +649,16 @@ class _EdgeModel:
         tie: _Tie | None,
         *,
         levels_polarity: NDArray[np.float64] | None = None,
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]]:
-        """``J^T J``, ``J^T r``, the pixel count and the RMS residual at ``theta`` (rows of the
-        block).
+    ) -> tuple[
+        NDArray[np.float64],
+        NDArray[np.float64],
+        NDArray[np.intp],
+        NDArray[np.float64],
+        NDArray[np.float32],
+        NDArray[np.bool_],
+    ]:
+        """``J^T J``, ``J^T r``, the pixel count, the RMS residual, the residuals (zero outside
+        the mask) and the mask at ``theta`` (rows of the block).
 
         With ``levels_polarity`` (the first evaluation, at the seeds) the mid level and half
         contrast are first set in ``theta``, in place, by linear least squares at its geometry.
@@ -670,7 +695,7 @@ class _EdgeModel:
             rhs -= tie.gradient(theta)
         count = mask.sum(axis=1)
         rms = np.sqrt(np.einsum("kl,kl->k", resid, resid) / np.maximum(count - npar, 1))
-        return normal, rhs, count.astype(np.intp), rms.astype(np.float64)
+        return normal, rhs, count.astype(np.intp), rms.astype(np.float64), resid, mask
 
     def sector_chi(
         self,
@@ -686,15 +711,25 @@ class _EdgeModel:
         im, ih = self.npar - 3, self.npar - 2
         _, mask, step_sum, _, _ = self._terms(theta, du0, dv0, label >= 0)
         resid = intensity - (theta[:, im : im + 1] + theta[:, ih : ih + 1] * step_sum)
-        k = theta.shape[0]
-        flat = np.where(mask, label + n_sectors * np.arange(k)[:, None], k * n_sectors)
-        size = k * n_sectors + 1
-        sums = np.bincount(flat.ravel(), weights=(resid * resid).ravel(), minlength=size)
-        counts = np.bincount(flat.ravel(), minlength=size)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rms = np.sqrt(sums[:-1] / counts[:-1]).reshape(k, n_sectors)
-        rms[counts[:-1].reshape(k, n_sectors) < _MIN_SECTOR_PIXELS] = np.nan
-        return rms
+        return _rms_by_sector(resid, mask, label, n_sectors)
+
+
+def _rms_by_sector(
+    resid: NDArray[np.floating[Any]],
+    mask: NDArray[np.bool_],
+    label: NDArray[np.intp],
+    n_sectors: int,
+) -> NDArray[np.float64]:
+    """RMS of each row's masked residuals in each sector (``label``; NaN below a few pixels)."""
+    k = resid.shape[0]
+    flat = np.where(mask & (label >= 0), label + n_sectors * np.arange(k)[:, None], k * n_sectors)
+    size = k * n_sectors + 1
+    sums = np.bincount(flat.ravel(), weights=(resid * resid).ravel(), minlength=size)
+    counts = np.bincount(flat.ravel(), minlength=size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rms = np.sqrt(sums[:-1] / counts[:-1]).reshape(k, n_sectors)
+    rms[counts[:-1].reshape(k, n_sectors) < _MIN_SECTOR_PIXELS] = np.nan
+    return rms
 
 
 @dataclass(frozen=True, slots=True, eq=False)
