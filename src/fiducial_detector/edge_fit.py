@@ -112,8 +112,9 @@ class EdgeFits:
         False where the fit failed (too few pixels, singular, diverged, wrong polarity).
     sector_chi : (n, S) ndarray or None
         Where asked for (``sectors=S``), the RMS residual over the noise of each of ``S`` equal
-        sectors of image angle about the seed's centre, at the final fit (failed or not) and
-        over every band pixel of the sector, hidden ones too (NaN: too few pixels).
+        sectors of image angle about the seed's centre, at the fit's last evaluation (within
+        1e-3 px of its result; failed or not) and over every band pixel of the sector, hidden
+        ones too (NaN: too few pixels).
     """
 
     params: NDArray[np.float64]
