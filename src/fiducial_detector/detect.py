@@ -776,25 +776,15 @@ def _fit_small_annulus(
     """
     if len(seeds) == 0:
         return []
-    r0 = design.pose_circle.radius
-    inner_seeds = seeds.copy()
-    inner_seeds[:, 2:4] *= design.circles[1].radius / r0
     # Not the model's inner edge, even where seen: its prior ties it to the outer edge's centre,
     # and the offset between concentric circles' centres that perspective makes is what tells
     # the pose's two solutions apart (with it, 48 % of the field's normals were over 10 deg off,
     # against 35 % with the dual conic's).
     pose, second, fits = _refine_annulus(
-        grey,
-        noise,
-        design,
-        seeds,
-        inner_seeds,
-        SMALL_ANNULUS_ITERATIONS,
-        sectors=COVER_SECTORS,
+        grey, noise, design, seeds, SMALL_ANNULUS_ITERATIONS, sectors=COVER_SECTORS
     )
-    chi = np.array([e.rms_residual if e is not None else np.nan for e in pose])
-    if np.any(np.isfinite(chi)):
-        typical = max(float(np.nanmedian(chi)), 1.0)
+    typical = _typical_rms(pose)
+    if typical is not None:
         pose, _ = _uncovered_annuli(grey, noise, design, seeds, pose, second, fits, typical)
         chi = np.array([e.rms_residual if e is not None else np.nan for e in pose])
         # A fit whose residuals still far exceed the other fiducials' in the image was not
@@ -993,15 +983,10 @@ def _fit_edge_model(
     if annulus:
         # The ring design's pose circle is the outer edge of a black annulus whose inner edge is
         # the second circle: both edges are fitted together (thin when seen obliquely).
-        inner_seeds = seeds.copy()
-        inner_seeds[:, 2:4] *= design.circles[1].radius / r0
-        pose, second, fits = _refine_annulus(
-            grey, noise, design, seeds, inner_seeds, sectors=COVER_SECTORS
-        )
-        chi = np.array([e.rms_residual if e is not None else np.nan for e in pose])
-        if np.any(np.isfinite(chi)):
+        pose, second, fits = _refine_annulus(grey, noise, design, seeds, sectors=COVER_SECTORS)
+        typical = _typical_rms(pose)
+        if typical is not None:
             # At 60 px a nearer fiducial's paper over part of the annulus pulled it 0.1-1.1 px.
-            typical = max(float(np.nanmedian(chi)), 1.0)
             pose, second = _uncovered_annuli(
                 grey, noise, design, seeds, pose, second, fits, typical
             )
@@ -1036,16 +1021,18 @@ def _refine_annulus(
     noise: float,
     design: FiducialDesign,
     outer_seeds: NDArray[Any],
-    inner_seeds: NDArray[Any],
     iterations: int = 4,
     *,
     hidden: NDArray[np.bool_] | None = None,
     sectors: int = 0,
 ) -> tuple[list[Ellipse | None], list[Ellipse | None], EdgeFits]:
-    """Both edges of the ring design's annulus (circles 0 and 1) from ``(n, 5)`` seeds, by at
-    most ``iterations`` Gauss-Newton steps; also the outer edges' fits (``hidden`` and
-    ``sectors`` as in :func:`.edge_fit.refine_annuli`)."""
+    """Both edges of the ring design's annulus (circles 0 and 1) from ``(n, 5)`` seeds of the
+    outer one (the inner one's scaled from them), by at most ``iterations`` Gauss-Newton steps;
+    also the outer edges' fits (``hidden`` and ``sectors`` as in
+    :func:`.edge_fit.refine_annuli`)."""
     c_out, c_in = design.circles[0], design.circles[1]
+    inner_seeds = np.array(outer_seeds, dtype=np.float64)
+    inner_seeds[:, 2:4] *= c_in.radius / c_out.radius
     fo, fi = refine_annuli(
         grey,
         outer_seeds,
@@ -1061,6 +1048,12 @@ def _refine_annulus(
     pose = _ellipses(fo, c_out.radius, keep=_plausible_rows(fo.params, outer_seeds))
     second = _ellipses(fi, c_in.radius, keep=_plausible_rows(fi.params, inner_seeds))
     return pose, second, fo
+
+
+def _typical_rms(fits: list[Ellipse | None]) -> float | None:
+    """The median RMS residual of an image's fits, at least the noise (None: no fit)."""
+    rms = [e.rms_residual for e in fits if e is not None and np.isfinite(e.rms_residual)]
+    return max(float(np.median(rms)), 1.0) if rms else None
 
 
 def _uncovered_annuli(
@@ -1105,21 +1098,17 @@ def _uncovered_annuli(
     # The sectors next to the worst share its boundary's blur.
     hidden |= np.roll(hidden, 1, axis=1) | np.roll(hidden, -1, axis=1)
     start = np.array([_parameters(pose[j]) for j in rows.tolist()])  # type: ignore[arg-type]
-    r0 = design.pose_circle.radius
     out, out_second = list(pose), list(second)
     # Rows still changing which sectors they hide; each keeps the refit of its last round.
     active = np.arange(rows.size)
     for _ in range(COVER_ROUNDS):
         now_rows = rows[active]
-        inner = start[active].copy()
-        inner[:, 2:4] *= design.circles[1].radius / r0
         used = hidden[active]
         refit, refit_second, fo = _refine_annulus(
             grey,
             noise,
             design,
             start[active],
-            inner,
             SMALL_ANNULUS_ITERATIONS,
             hidden=used,
             sectors=COVER_SECTORS,
@@ -1139,10 +1128,11 @@ def _uncovered_annuli(
         stands_out = ~used & (now > np.maximum(limit, COVER_RELATIVE * shown.max(axis=1))[:, None])
         update = (used & (now > COVER_SHOW_CHI * typical)) | stands_out
         hidden[active] = update
-        ok = fo.ok & np.all(np.isfinite(fo.params), axis=1)
-        start[active] = np.where(ok[:, None], fo.params, start[active])
-        # A refit that failed (too much hidden) ends its row with the first fit.
-        active = active[np.any(update != used, axis=1) & fo.ok]
+        # A refit that failed (too much hidden) ends its row with the first fit; the others
+        # start their next round from their refit.
+        more = np.any(update != used, axis=1) & fo.ok
+        start[active[more]] = fo.params[more]
+        active = active[more]
         if active.size == 0:
             break
     return out, out_second

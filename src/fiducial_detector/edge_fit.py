@@ -358,16 +358,15 @@ def _refine(
     counts = np.bincount(fit, minlength=idx.size)
     starts = np.cumsum(counts) - counts
     intensity = img[pv, pu].astype(np.float32)
-    sector = None
+    sector = shown = None
     if sectors > 0:
         # Single precision: a sector is 22 degrees wide, the pixels' angles are exact to 1e-6.
         dv = (pv - out_e[fit, 1]).astype(np.float32)
         du = (pu - out_e[fit, 0]).astype(np.float32)
         turns = np.arctan2(dv, du) * np.float32(sectors / (2.0 * np.pi))
         sector = np.floor(turns).astype(np.intp) % sectors
-    shown = np.ones(fit.size, dtype=bool)
-    if hidden is not None and sector is not None:
-        shown = ~hidden[idx[fit], sector]
+        if hidden is not None:
+            shown = ~hidden[idx[fit], sector]
     # Blocks of fits with similar pixel counts, each padded to its largest.
     order = np.argsort(counts, kind="stable")
     for first in range(0, idx.size, _BLOCK):
@@ -378,7 +377,7 @@ def _refine(
         pos = np.arange(length)
         gathered = pos[None, :] < counts[blk, None]
         take = np.where(gathered, starts[blk, None] + pos[None, :], 0)
-        valid = gathered & shown[take]
+        valid = gathered if shown is None else gathered & shown[take]
         res = _gauss_newton(
             seeds[idx[blk]],
             signs,
