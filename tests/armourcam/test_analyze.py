@@ -41,6 +41,39 @@ def test_session_bag_layout_and_truth(tmp_path: Path) -> None:
     assert truth["runs"][1]["incremental"]["displaced_units"] == 0
 
 
+def test_compare_to_truth_scores_a_pose_far_off_in_depth_and_flags_wrong_partners() -> None:
+    """Measured fiducials are paired with the truth by code and across the line of sight: one
+    10 mm off in depth is scored (its error counted, not dropped); one given a neighbour's
+    motion is a wrong partner; one of a code no truth fiducial near it has is unpaired."""
+    ray = np.array([0.1, -0.05, 1.0]) / np.linalg.norm([0.1, -0.05, 1.0])
+    truth = {
+        "fiducials": [
+            {"code": 3, "before_mm": (1000 * ray).tolist(), "displacement_mm": [0.0, 0.0, 0.0]},
+            {"code": 17, "before_mm": [120.0, -30.0, 1000.0], "displacement_mm": [20, 5, -8]},
+            {"code": 17, "before_mm": [140.0, -30.0, 1000.0], "displacement_mm": [0, 0, 0]},
+        ],
+        "displaced_units": 1,
+    }
+    report = {
+        "fiducials": [
+            # Still, its depth 10 mm off in both states: right partner, 0 displacement error.
+            {"code_before": 3, "before_mm": (1010 * ray).tolist(), "displacement_mm": [0, 0, 0]},
+            # The still code-17 fiducial reported with its neighbour's motion: a wrong partner.
+            {
+                "code_before": 17,
+                "before_mm": [140.2, -30.1, 1001.0],
+                "displacement_mm": [20, 5, -8],
+            },
+            # A code-29 fiducial where the truth has none.
+            {"code_before": 29, "before_mm": [120.0, -30.0, 1000.0], "displacement_mm": [0, 0, 0]},
+            {"code_before": 17, "before_mm": [120.0, -30.0, 1000.0], "displacement_mm": None},
+        ]
+    }
+    acc = sessionbag.compare_to_truth(report, truth)
+    assert acc["paired"] == 2 and acc["unpaired"] == 1 and acc["wrong"] == 1
+    assert acc["err_median_mm"] == pytest.approx(0.5 * np.linalg.norm([20, 5, -8]))
+
+
 @pytest.fixture(scope="module")
 def analyzed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, AnalysisResult]:
     """The bundled session bag analysed once (the output directory and the result)."""
