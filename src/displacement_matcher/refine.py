@@ -61,6 +61,9 @@ UNMOVED_MM = 0.5
 #: costs this much there (half the matcher's gate: what one unmatched fiducial costs), so that of
 #: two units claiming one group, the one whose place is now covered stays behind it.
 LOST_COST_MM = 0.5 * DEFAULT_GATE_MM
+#: A face seen again in place across the line of sight and within this distance in depth
+#: breaks a one-against-one tie with a pair that moved (:func:`_mostly_in_place`).
+TIE_DEPTH_MM = 12.0
 #: In front of a baseline face: within this distance of it across the line of sight (a face of
 #: the unit resting over it) ...
 COVER_MM = 10.0
@@ -259,7 +262,9 @@ def match_units(
                     gate[i] = translation_gate_mm
                 continue
             ref = u.reference_before_mm
-            if u.unit in held or _mostly_in_place(u.baseline_indices, in_place, pair_of):
+            if u.unit in held or _mostly_in_place(
+                u.baseline_indices, in_place, pair_of, baseline, current
+            ):
                 # Most of its faces are still seen where they were (across the line of sight;
                 # their pairs' depth may be far off, partly covered fiducials): the motion rests
                 # on the rest, a neighbour's face taken. The unit is looked for where it was, and
@@ -1019,20 +1024,31 @@ def _turned_onto(
 
 
 def _mostly_in_place(
-    members: Sequence[int], in_place: dict[int, int], pair_of: dict[int, int]
+    members: Sequence[int],
+    in_place: dict[int, int],
+    pair_of: dict[int, int],
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
 ) -> bool:
-    """Whether two or more of a unit's baseline fiducials, and more than those whose pairs
-    moved, have a face of their code still seen where they were (across the line of sight,
-    :func:`.units.still_in_place`) that is their own pair or no pair's."""
+    """Whether a unit's baseline fiducials that have a face of their code still seen where they
+    were (across the line of sight, :func:`.units.still_in_place`), their own pair's or no
+    pair's, outnumber those whose pairs moved, two or more of them; or, one against one, the
+    face in place is also at its depth (within :data:`TIE_DEPTH_MM`): most units do not move,
+    and a face seen again where it was, depth included, is as strong as a pair that moved (a
+    neighbour's face taken: 30 dolos-field seeds, still units counted displaced 7 -> 6). Depth
+    only breaks the tie: a partly covered face's depth may be centimetres off, while a unit
+    moving along the line of sight keeps its faces in place across it."""
     claimed = set(pair_of.values())
-    stayed = moved = 0
+    stayed = moved = deep = 0
     for i in members:
         j = in_place.get(i)
         if j is not None and (pair_of.get(i) == j or j not in claimed):
             stayed += 1
+            gap = np.asarray(current[j].position_mm) - np.asarray(baseline[i].position_mm)
+            deep += bool(np.linalg.norm(gap) <= TIE_DEPTH_MM)
         elif i in pair_of:
             moved += 1
-    return stayed >= 2 and stayed > moved
+    return (stayed >= 2 and stayed > moved) or (stayed == moved == deep == 1)
 
 
 def _seen_in_place(

@@ -591,6 +591,21 @@ def test_covered_face_posed_near_is_not_a_lone_mover() -> None:
     assert next(u for u in units if seen in u.baseline_indices).status == "still"
 
 
+def test_still_unit_with_one_face_in_place_depth_included_is_not_moved_by_one_stranger() -> None:
+    """Real poses from the end-to-end field (seed 12, everything within 80 mm of a still unit):
+    the unit showed three faces; after the run a moved neighbour came to rest over it. Its
+    code-17 face is still detected where it was (partly covered, 10 mm nearer), and the
+    neighbour's faces offered pairs to the others (a rigid 38 mm move). A face seen again in
+    place, and within 12 mm in depth, stands against one pair that moved (most units do not
+    move): the unit is looked for where it was and not counted displaced (it was before)."""
+    doc = json.loads((DATA / "covered_unit_seed12.json").read_text())
+
+    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
+    units, _ = assess(an.units, thresholds(GEO.dn_mm))
+    seen = doc["unit_baseline_indices"][0]
+    assert next(u for u in units if seen in u.baseline_indices).status != "displaced"
+
+
 @pytest.mark.parametrize("turn_deg", [0.0, 20.0])
 @pytest.mark.parametrize("move_mm", [(0.0, 35.0, -10.0), (-30.0, -20.0, 5.0)])
 def test_lost_unit_is_found_again_by_the_faces_it_shows_now(
