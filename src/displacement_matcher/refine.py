@@ -141,8 +141,9 @@ def match_units(
     elsewhere than its own matches do, its fiducials are predicted there (translation gate), and the
     pairs other units made into that group are ruled out. Faces still seen where they were (across
     the line of sight, where one image measures precisely) outweigh pairs that moved: a unit most of
-    whose faces are in place is looked for there, and so is a unit measured through one pair that
-    moved while a face of its code is in place. A lone pair is ruled out where its fiducial is
+    whose faces are in place (or one, at its depth too, against one pair that moved) is looked
+    for there, and so is a unit measured through one pair that moved while a face of its code
+    is in place. A lone pair is ruled out where its fiducial is
     another unit's face, by that unit's own matches (:func:`_contested_lone_pairs`; where that unit
     is itself measured through one pair, by the rotation its pair's normals and the fiducial's own
     fix, :func:`_turned_onto`) or by the template fitted to a still neighbour's faces
@@ -266,8 +267,9 @@ def match_units(
                 u.baseline_indices, in_place, pair_of, baseline, current
             ):
                 # Most of its faces are still seen where they were (across the line of sight;
-                # their pairs' depth may be far off, partly covered fiducials): the motion rests
-                # on the rest, a neighbour's face taken. The unit is looked for where it was, and
+                # their pairs' depth may be far off, partly covered fiducials), or one, at its
+                # depth too, against one pair that moved: the motion rests on the rest, a
+                # neighbour's face taken. The unit is looked for where it was, and
                 # held there in later passes (the pairs that moved it would otherwise outvote
                 # its faces again once those are claimed).
                 held.add(u.unit)
