@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 
 from armourcam.field import Field, FieldState, make_field
 from armourcam.render import Target, render
+from displacement_matcher.rigid import across_line_of_sight
 from pose_estimator.camera import CameraModel
 
 from . import bagio
@@ -372,9 +373,7 @@ def compare_to_truth(report: dict[str, Any], truth_part: dict[str, Any]) -> dict
             continue
         b = np.asarray(f["before_mm"], dtype=float)
         code = f.get("code_before")
-        ray = b / max(float(np.linalg.norm(b)), 1e-12)
-        off = tb - b
-        lateral = np.linalg.norm(off - (off @ ray)[:, None] * ray, axis=1)
+        lateral = np.linalg.norm(across_line_of_sight(tb - b, b), axis=1)
         if code is not None:
             lateral = np.where(codes == int(code), lateral, np.inf)
         k = int(np.argmin(lateral)) if len(lateral) else -1
@@ -383,7 +382,7 @@ def compare_to_truth(report: dict[str, Any], truth_part: dict[str, Any]) -> dict
             continue
         e = np.asarray(f["displacement_mm"], dtype=float) - td[k]
         errs.append(e)
-        across.append(float(np.linalg.norm(e - (e @ ray) * ray)))
+        across.append(float(np.linalg.norm(across_line_of_sight(e, b))))
     e = np.array(errs).reshape(-1, 3)
     norm = np.linalg.norm(e, axis=1) if len(e) else np.zeros(0)
     return {
