@@ -31,6 +31,7 @@ from .match import DEFAULT_GATE_MM, match
 from .rigid import across_line_of_sight, rigid_fit
 from .types import MatchResult, UnitMotion
 from .units import (
+    APART_IN_DEPTH_MM,
     DEFAULT_OVERTURN_DEG,
     DEFAULT_RIGID_TOL_MM,
     DEFAULT_SPAN_MM,
@@ -62,8 +63,10 @@ UNMOVED_MM = 0.5
 #: two units claiming one group, the one whose place is now covered stays behind it.
 LOST_COST_MM = 0.5 * DEFAULT_GATE_MM
 #: A face seen again in place across the line of sight and within this distance in depth
-#: breaks a one-against-one tie with a pair that moved (:func:`_mostly_in_place`).
-TIE_DEPTH_MM = 12.0
+#: breaks a one-against-one tie with a pair that moved (:func:`_mostly_in_place`), whatever
+#: depth sd the two poses claim (the distance beyond which a face with precise depths is another
+#: unit's, :func:`.units.still_in_place`).
+TIE_DEPTH_MM = APART_IN_DEPTH_MM
 #: In front of a baseline face: within this distance of it across the line of sight (a face of
 #: the unit resting over it) ...
 COVER_MM = 10.0

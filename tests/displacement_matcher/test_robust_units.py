@@ -524,7 +524,9 @@ def test_lone_fiducial_seen_in_place_with_its_depth_off_keeps_its_face() -> None
     """A unit seen through one fiducial, still; after the run the fiducial is partly covered and
     its depth comes out 60 mm off, while a stranger of the same code shows 23 mm away across the
     line of sight. Fiducial by fiducial the stranger is cheaper; the face still seen in place
-    (depth aside) is its own: the unit is not displaced and keeps its face."""
+    (depth aside) is its own: the unit is not displaced and keeps its face. The covered pose
+    claims a depth sd three times the others' (on the end-to-end fields the poses over 12 mm off
+    in depth claim about 1-3 mm against a median of 0.45 mm), so its depth is not trusted."""
     p0, ray, across = _lone_site()
     normal = -ray
     base = [FiducialPose(29, p0, normal, realistic_cov(p0, 0.1, 0.5))]
@@ -532,7 +534,7 @@ def test_lone_fiducial_seen_in_place_with_its_depth_off_keeps_its_face() -> None
     stranger = p0 + 23.0 * across
     cur = [
         FiducialPose(29, stranger, normal, realistic_cov(stranger, 0.1, 0.5)),
-        FiducialPose(29, seen, normal, realistic_cov(seen, 0.1, 0.5)),
+        FiducialPose(29, seen, normal, realistic_cov(seen, 0.3, 1.5)),
     ]
     an = match_units(base, cur, unit_map=UMAP, gate_mm=50.0)
     _, summary = assess(an.units, thresholds(GEO.dn_mm))
@@ -604,6 +606,27 @@ def test_still_unit_with_one_face_in_place_depth_included_is_not_moved_by_one_st
     units, _ = assess(an.units, thresholds(GEO.dn_mm))
     seen = doc["unit_baseline_indices"][0]
     assert next(u for u in units if seen in u.baseline_indices).status != "displaced"
+
+
+def test_face_come_to_rest_in_front_of_a_hidden_one_is_the_movers() -> None:
+    """Real poses from the end-to-end field (seed 23, everything within 80 mm of a still unit):
+    a unit moved 2.08 Dn and came to rest in front of the still unit, its code-17 face 24 mm
+    nearer the camera than the still unit's, now hidden behind it, and within 3 mm of it across
+    the line of sight. Both poses claim their depth to half a millimetre: the face is the
+    mover's, not the still unit's seen again in place. The mover is displaced by its true motion
+    (it was measured 0.58 Dn with a single face's translation before), the still unit stays."""
+    doc = json.loads((DATA / "face_in_front_seed23.json").read_text())
+
+    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    mover = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    assert still.status == "still"
+    assert set(mover.baseline_indices) == set(doc["mover_baseline_indices"])
+    assert mover.status == "displaced"
+    err = np.asarray(mover.translation_mm) - np.asarray(doc["mover_true_translation_mm"])
+    assert np.linalg.norm(err) < 1.5
+    assert summary.displaced_units == 1
 
 
 @pytest.mark.parametrize("turn_deg", [0.0, 20.0])

@@ -10,10 +10,13 @@ from displacement_matcher import MatcherError, match
 from displacement_matcher.refine import match_units
 from displacement_matcher.rigid import kabsch, rigid_fit
 from displacement_matcher.units import (
+    APART_IN_DEPTH_MM,
     group_fiducials,
     learn_pair_distances,
     load_unit_map,
     parse_unit_map,
+    precise_depth,
+    still_in_place,
     unit_motions,
 )
 from pose_estimator.fusion import moved_poses
@@ -385,3 +388,46 @@ def test_passes_that_cycle_end_the_same_whatever_the_pass_limit() -> None:
             if not field.overturned[tu]:
                 err = u.translation_mm - field.displacement_at(tu, u.reference_before_mm)
                 assert np.linalg.norm(err) < 20.0, (u.unit, err)
+
+
+def _on_ray(code: int, depth_mm: float, across_mm: float, sd_mm: float) -> FiducialPose:
+    """A pose of ``code`` at ``depth_mm`` along a fixed line of sight, ``across_mm`` off it, with
+    a depth sd ``sd_mm`` along its own line of sight (0.1 mm across)."""
+    ray = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+    side = np.cross(ray, [0.0, 1.0, 0.0])
+    p = depth_mm * ray + across_mm * side / np.linalg.norm(side)
+    r = p / np.linalg.norm(p)
+    cov = 0.01 * np.eye(3) + (sd_mm**2 - 0.01) * np.outer(r, r)
+    return FiducialPose(code, p, -r, cov)
+
+
+def test_precise_depth_is_relative_to_the_median_claim() -> None:
+    """Poses claiming a depth sd within 1.6 times the set's median are precise; a NaN claim is
+    not, and the empty set gives an empty answer."""
+    sds = [0.4, 0.45, 0.5, 0.7, 0.8, 2.0]
+    poses = [_on_ray(3, 1700.0 + 30.0 * k, 0.0, sd) for k, sd in enumerate(sds)]
+    nan = FiducialPose(
+        3, np.array([0.0, 0.0, 1700.0]), np.array([0.0, 0.0, -1.0]), np.full((3, 3), np.nan)
+    )
+    np.testing.assert_array_equal(precise_depth(poses), [True] * 5 + [False])
+    assert precise_depth([*poses, nan]).tolist() == [True] * 5 + [False, False]
+    assert precise_depth([]).shape == (0,)
+
+
+@pytest.mark.parametrize("now_sd", [0.5, 1.5])
+@pytest.mark.parametrize("nearer_mm", [5.0, 24.0])
+def test_face_in_place_across_the_line_of_sight_but_far_nearer_is_another(
+    nearer_mm: float, now_sd: float
+) -> None:
+    """A face of the same code 1 mm off across the line of sight is seen again in place, unless
+    it lies more than 12 mm nearer and both poses claim a precise depth (another unit's face
+    come to rest in front); a pose claiming three times the others' sd keeps the lateral rule
+    (a partly covered fiducial's depth may be centimetres off)."""
+    base = [_on_ray(17, 1700.0, 0.0, 0.5), _on_ray(3, 1720.0, 40.0, 0.5)]
+    cur = [_on_ray(3, 1720.0, 40.0, 0.5), _on_ray(17, 1700.0 - nearer_mm, 1.0, now_sd)]
+    shown = still_in_place(base, cur)
+    assert shown[1] == 0
+    apart = nearer_mm > APART_IN_DEPTH_MM and now_sd < 1.0
+    assert (0 in shown) is not apart
+    if not apart:
+        assert shown[0] == 1
