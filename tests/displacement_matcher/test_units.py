@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from matcher_synth import make_pose
 
 from armourcam.field import dolos_geometry, make_field
 from displacement_matcher import MatcherError, match
@@ -396,9 +397,7 @@ def _on_ray(code: int, depth_mm: float, across_mm: float, sd_mm: float) -> Fiduc
     ray = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
     side = np.cross(ray, [0.0, 1.0, 0.0])
     p = depth_mm * ray + across_mm * side / np.linalg.norm(side)
-    r = p / np.linalg.norm(p)
-    cov = 0.01 * np.eye(3) + (sd_mm**2 - 0.01) * np.outer(r, r)
-    return FiducialPose(code, p, -r, cov)
+    return make_pose(code, p, 0.1, sd_mm, normal=-p / np.linalg.norm(p))
 
 
 def test_precise_depth_is_relative_to_the_median_claim() -> None:
