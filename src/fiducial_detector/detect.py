@@ -142,11 +142,12 @@ _MIN_DECIMATED_SIDE = 16
 #: :mod:`.edge_fit`: slower, at the Cramer-Rao bound).
 SubpixelMethod = Literal["profile", "ml"]
 SUBPIXEL_METHODS: tuple[str, ...] = ("profile", "ml")
-#: Arc length between the pose circle's profile lines, pixels. Lines a pixel apart share
-#: interpolated pixels (their errors correlate by 1/4); 1.5 px apart they nearly do not (1/32),
-#: so a third fewer lines lose only about 3 % of centre precision, and take a third off the pose
-#: circle's passes. The other circles keep a line per pixel: a thin annulus' inner edge seen
-#: obliquely keeps few usable lines, and fewer would send it to the much slower edge model.
+#: Arc length between the profile lines of the two largest circles (the pose circle and, in the
+#: ``ring`` design, the annulus' inner edge), pixels. Lines a pixel apart share interpolated
+#: pixels (their errors correlate by 1/4); 1.5 px apart they nearly do not (1/32), so a third
+#: fewer lines lose only about 3 % of centre precision, and take a third off those circles'
+#: passes. The small inner circle keeps a line per pixel: seen obliquely it keeps few usable
+#: lines, and fewer would send its fiducial to the much slower edge model.
 POSE_LINE_SPACING_PX = 1.5
 #: Fraction of a pose circle's profile lines that must find its edge; below it the fiducial is
 #: fitted by the ``ml`` method instead.
@@ -883,8 +884,9 @@ def _profile_circle(
 
 
 def _spacing(k: int) -> float:
-    """Arc length between the profile lines of circle ``k`` of a design, pixels."""
-    return POSE_LINE_SPACING_PX if k == 0 else LINE_SPACING_PX
+    """Arc length between the profile lines of circle ``k`` of a design, pixels
+    (:data:`POSE_LINE_SPACING_PX` for the two largest)."""
+    return POSE_LINE_SPACING_PX if k <= 1 else LINE_SPACING_PX
 
 
 def _usable_noise(noise: float | None) -> float | None:
