@@ -252,7 +252,17 @@ def match_units(
         covered |= {i for i, _ in shown_in_place}
         excluded |= shown_in_place
         for u in units:
-            if u.overturned:
+            # Overturned units are left to the plain matching (their fitted rotation predicts
+            # poorly), except one whose faces are mostly seen where they were: a still unit the
+            # fit turned about its face in place, through a pair into a neighbour's face beside
+            # it (30 dolos-field seeds: still units counted displaced 6 -> 5).
+            if u.overturned and not (
+                u.n_matched >= 2
+                and (
+                    u.unit in held
+                    or _mostly_in_place(u.baseline_indices, in_place, pair_of, baseline, current)
+                )
+            ):
                 continue
             if u.method == "none" or u.n_matched == 0:
                 # Nothing matched. A unit of several fiducials may have moved far and lost its

@@ -629,6 +629,29 @@ def test_face_come_to_rest_in_front_of_a_hidden_one_is_the_movers() -> None:
     assert summary.displaced_units == 1
 
 
+def test_still_unit_is_not_turned_about_its_face_seen_in_place() -> None:
+    """Recorded from an end-to-end dolos field (seed 13, everything within 40 mm of a still
+    unit): the still unit shows its code-29 face in place after the run, while its code-17 face
+    is hidden behind a neighbour that moved 1.65 Dn and now shows its code-17 and code-3 faces
+    beside it. The global matching pairs the hidden face with the neighbour's code-17 face
+    36 mm away; the rigid fit through that pair and the face in place turns the unit 78 deg
+    about that face, which counted it overturned. One face in place at its depth against one
+    pair that moved holds the unit where it was, overturned by the fit or not; the neighbour's
+    faces then go to the neighbour, measured through the template."""
+    doc = json.loads((DATA / "pivot_on_face_seed13.json").read_text())
+
+    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    mover = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    assert still.status == "still"
+    assert not still.overturned
+    assert mover.status == "displaced"
+    err = np.asarray(mover.translation_mm) - np.asarray(doc["mover_true_translation_mm"])
+    assert np.linalg.norm(err) < 1.5
+    assert summary.displaced_units == 1
+
+
 @pytest.mark.parametrize("turn_deg", [0.0, 20.0])
 @pytest.mark.parametrize("move_mm", [(0.0, 35.0, -10.0), (-30.0, -20.0, 5.0)])
 def test_lost_unit_is_found_again_by_the_faces_it_shows_now(
