@@ -640,7 +640,9 @@ def fit_design_circles(
     first = _profile_circle(src, design, 0, seeds, None, noise_std)
     # Where most of the pose circle's lines found no clean edge (a small oblique dot whose
     # windows the code track cuts short), the profiles say too little: the model fit instead.
-    weak = ~first.ok | (first.pixels < PROFILE_MIN_COVERAGE * line_counts(seeds, _spacing(0)))
+    weak = ~first.ok | (
+        first.pixels < PROFILE_MIN_COVERAGE * line_counts(seeds, _spacing(design, 0))
+    )
     # Ellipses whose tips bend within the blur (curvature a / b^2) break the profiles'
     # first-order curvature correction there.
     weak |= seeds[:, 2] / np.maximum(seeds[:, 3], 1e-9) ** 2 > PROFILE_MAX_TIP_CURVATURE
@@ -879,14 +881,15 @@ def _profile_circle(
         passes=passes,
         spread=blur,
         noise_std=_usable_noise(noise),
-        spacing=_spacing(k),
+        spacing=_spacing(design, k),
     )
 
 
-def _spacing(k: int) -> float:
-    """Arc length between the profile lines of circle ``k`` of a design, pixels
-    (:data:`POSE_LINE_SPACING_PX` for the two largest)."""
-    return POSE_LINE_SPACING_PX if k <= 1 else LINE_SPACING_PX
+def _spacing(design: FiducialDesign, k: int) -> float:
+    """Arc length between the profile lines of circle ``k`` of ``design``, pixels
+    (:data:`POSE_LINE_SPACING_PX` for the pose circle and an annulus' inner edge)."""
+    inner = design.annulus_inner is not None and design.circles[k].radius == design.annulus_inner
+    return POSE_LINE_SPACING_PX if k == 0 or inner else LINE_SPACING_PX
 
 
 def _usable_noise(noise: float | None) -> float | None:

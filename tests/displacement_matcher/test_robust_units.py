@@ -22,7 +22,7 @@ from armourcam.field import dolos_geometry
 from displacement_matcher import match
 from displacement_matcher.damage import assess, thresholds
 from displacement_matcher.refine import match_units
-from displacement_matcher.types import UnitMotion
+from displacement_matcher.types import DamageSummary, UnitMotion
 from displacement_matcher.units import (
     group_fiducials,
     mirror_normals,
@@ -556,6 +556,20 @@ def _poses(rows: list[dict[str, Any]]) -> list[FiducialPose]:
     ]
 
 
+def _recorded_still_and_mover(
+    name: str,
+) -> tuple[UnitMotion, UnitMotion, DamageSummary, dict[str, Any]]:
+    """A recorded patch with a still unit and a mover (``tests/displacement_matcher/data``),
+    matched with the dolos template: the still unit's and the mover's assessed motions, the
+    damage summary and the patch."""
+    doc = json.loads((DATA / name).read_text())
+    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
+    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    mover = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    return still, mover, summary, doc
+
+
 def test_still_unit_with_two_faces_in_place_is_not_moved_by_a_depth_outlier_and_a_stranger() -> (
     None
 ):
@@ -615,12 +629,7 @@ def test_face_come_to_rest_in_front_of_a_hidden_one_is_the_movers() -> None:
     the line of sight. Both poses claim their depth to half a millimetre: the face is the
     mover's, not the still unit's seen again in place. The mover is displaced by its true motion
     (it was measured 0.58 Dn with a single face's translation before), the still unit stays."""
-    doc = json.loads((DATA / "face_in_front_seed23.json").read_text())
-
-    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
-    units, summary = assess(an.units, thresholds(GEO.dn_mm))
-    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
-    mover = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    still, mover, summary, doc = _recorded_still_and_mover("face_in_front_seed23.json")
     assert still.status == "still"
     assert set(mover.baseline_indices) == set(doc["mover_baseline_indices"])
     assert mover.status == "displaced"
@@ -638,12 +647,7 @@ def test_still_unit_is_not_turned_about_its_face_seen_in_place() -> None:
     about that face, which counted it overturned. One face in place at its depth against one
     pair that moved holds the unit where it was, overturned by the fit or not; the neighbour's
     faces then go to the neighbour, measured through the template."""
-    doc = json.loads((DATA / "pivot_on_face_seed13.json").read_text())
-
-    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
-    units, summary = assess(an.units, thresholds(GEO.dn_mm))
-    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
-    mover = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    still, mover, summary, doc = _recorded_still_and_mover("pivot_on_face_seed13.json")
     assert still.status == "still"
     assert not still.overturned
     assert mover.status == "displaced"
