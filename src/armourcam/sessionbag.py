@@ -380,9 +380,9 @@ def compare_to_truth(report: dict[str, Any], truth_part: dict[str, Any]) -> dict
         if k < 0 or lateral[k] > TRUTH_PAIR_MM:
             unpaired += 1
             continue
-        e = np.asarray(f["displacement_mm"], dtype=float) - td[k]
-        errs.append(e)
-        across.append(float(np.linalg.norm(across_line_of_sight(e, b))))
+        err = np.asarray(f["displacement_mm"], dtype=float) - td[k]
+        errs.append(err)
+        across.append(float(np.linalg.norm(across_line_of_sight(err, b))))
     e = np.array(errs).reshape(-1, 3)
     norm = np.linalg.norm(e, axis=1) if len(e) else np.zeros(0)
     return {

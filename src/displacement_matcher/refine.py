@@ -252,33 +252,30 @@ def match_units(
         covered |= {i for i, _ in shown_in_place}
         excluded |= shown_in_place
         for u in units:
-            # Overturned units are left to the plain matching (their fitted rotation predicts
-            # poorly), except one whose faces are mostly seen where they were: a still unit the
-            # fit turned about its face in place, through a pair into a neighbour's face beside
-            # it (30 dolos-field seeds: still units counted displaced 6 -> 5).
-            if u.overturned and not (
-                u.n_matched >= 2
-                and (
-                    u.unit in held
-                    or _mostly_in_place(u.baseline_indices, in_place, pair_of, baseline, current)
-                )
-            ):
-                continue
             if u.method == "none" or u.n_matched == 0:
                 # Nothing matched. A unit of several fiducials may have moved far and lost its
                 # partners to a wrong first guess: it searches the full gate again. A lone
                 # fiducial is weak evidence (far off, a same-code stranger is as likely as its
                 # partner; most units do not move): it is looked for where it was, with the
                 # depth slack (its depth may be far off while the image shows it in place).
-                if len(u.baseline_indices) == 1:
+                # (Overturned units are left to the plain matching, below.)
+                if len(u.baseline_indices) == 1 and not u.overturned:
                     i = u.baseline_indices[0]
                     pred[i] = baseline[i].position_mm
                     gate[i] = translation_gate_mm
                 continue
-            ref = u.reference_before_mm
-            if u.unit in held or _mostly_in_place(
+            stays = u.unit in held or _mostly_in_place(
                 u.baseline_indices, in_place, pair_of, baseline, current
-            ):
+            )
+            if u.overturned and not (u.n_matched >= 2 and stays):
+                # Overturned units are left to the plain matching (their fitted rotation
+                # predicts poorly), except one whose faces are mostly seen where they were: a
+                # still unit the fit turned about its face in place, through a pair into a
+                # neighbour's face beside it (30 dolos-field seeds: still units counted
+                # displaced 6 -> 5).
+                continue
+            ref = u.reference_before_mm
+            if stays:
                 # Most of its faces are still seen where they were (across the line of sight;
                 # their pairs' depth may be far off, partly covered fiducials), or one, at its
                 # depth too, against one pair that moved: the motion rests on the rest, a
