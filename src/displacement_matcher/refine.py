@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from pose_estimator.types import FiducialPose
 
 from .errors import MatcherError
-from .match import DEFAULT_GATE_MM, match
+from .match import match
 from .rigid import across_line_of_sight, rigid_fit
 from .types import MatchResult, UnitMotion
 from .units import (
@@ -57,11 +57,6 @@ UNMOVED_CHI2 = 7.81
 #: and model misfit that differ between two images shift a pose by microns, beyond a clean
 #: image's noise-only covariance); far below any motion the damage count tells apart.
 UNMOVED_MM = 0.5
-#: A baseline unit left out of the whole-unit assignment (:func:`assign_unit_groups`) is either
-#: hidden behind something that came to rest in front of it, or lost from view; losing a unit
-#: costs this much there (half the matcher's gate: what one unmatched fiducial costs), so that of
-#: two units claiming one group, the one whose place is now covered stays behind it.
-LOST_COST_MM = 0.5 * DEFAULT_GATE_MM
 #: A face seen again in place across the line of sight and within this distance in depth
 #: breaks a one-against-one tie with a pair that moved (:func:`_mostly_in_place`), whatever
 #: depth sd the two poses claim (the distance beyond which a face with precise depths is another
@@ -403,18 +398,22 @@ def assign_unit_groups(
     a baseline unit and a current group (:func:`.units.group_fiducials` on the current poses) are
     candidates when at least two codes are on both and their same-code pairs agree on one
     translation within ``tol_mm`` across the line of sight (two coherent fiducials are evidence
-    one stranger is not). Each shared fiducial is worth ``gate_mm`` (what leaving both sides of a
-    pair unmatched costs in :func:`displacement_matcher.match`) and the motion costs its length,
-    so the assignment (exact, minimum cost, each unit and group used at most once, no match
-    allowed) prefers more shared faces, then the smallest motion. A baseline unit with a face
-    still seen in place (:func:`.units.still_in_place`) did not move: it takes no part, and the
-    current unit holding that face is its own, so no other unit may claim it; the mover then
-    gets the group it moved to. (A neighbour hidden entirely is not told apart from a mover by
-    the pairs' positions alone.) Staying unassigned costs nothing for a unit
-    with a candidate group's face now in front of one of its own (:func:`_covered`: it is hidden
-    there) and :data:`LOST_COST_MM` otherwise: of two units whose faces fit one group, the one
-    whose place is now empty moved, and the one it covers stays (a mover come to rest 20 mm in
-    front of a neighbour showing the same codes). Units seen through one fiducial take part
+    one stranger is not). Costs follow the fiducial matching's (:func:`displacement_matcher.match`,
+    where a fiducial left unmatched costs half of ``gate_mm``), face by face: the motion costs
+    its length, each shared pair saves the current face's half gate and the baseline face's,
+    except that a baseline face with a current fiducial now in front of it (:func:`_covered`)
+    costs nothing unmatched (it is hidden there, not gone), so its pair saves only the current
+    half. A unit left unassigned costs nothing. The assignment (exact, minimum cost, each unit
+    and group used at most once, no match allowed) prefers more shared faces, then the smallest
+    motion, and of two units whose faces fit one group, it gives the group to the one whose
+    place is now empty (a mover come to rest 20 mm in front of a neighbour showing the same
+    codes; 30 dolos-field seeds: still units counted displaced 5 -> 4). A baseline unit with a
+    face still seen in place (:func:`.units.still_in_place`) did not move: it takes no part, and
+    the current unit holding that face is its own, so no other unit may claim it; the mover
+    then gets the group it moved to. (A neighbour hidden entirely is not told apart from a
+    mover by the pairs' positions alone, nor a unit that moved straight towards the camera,
+    in front of its own old faces, from a mover come to rest there: the face counts and
+    lengths decide.) Units seen through one fiducial take part
     with the groups holding its code, but their assignments are not returned (one face is weak
     evidence: the fiducial matching pairs it): they only keep a two-faced unit from a group that
     is theirs (a mover whose pair lands on a neighbour's new pair after a shorter motion than its
@@ -461,7 +460,6 @@ def assign_unit_groups(
 
     rows: list[int] = []
     cols: list[int] = []
-    costs: list[float] = []
     motions: list[NDArray[np.float64]] = []
     shares: list[list[tuple[int, int]]] = []
     for n, (_, ix) in enumerate(base_units):
@@ -496,7 +494,6 @@ def assign_unit_groups(
                 continue
             rows.append(n)
             cols.append(c)
-            costs.append(length - gate_mm * len(shared))
             motions.append(t)
             shares.append(shared)
     if not rows:
@@ -508,15 +505,17 @@ def assign_unit_groups(
     # Square matrix with a no-match column per row so every unit may stay unassigned.
     big = 1e9
     cost = np.full((len(ur), len(uc) + len(ur)), big)
-    # A unit left unassigned is either hidden (behind a unit that may have come to rest in
-    # front of it: a candidate group's faces) or lost from view, which is rarer.
+    # A baseline face not seen now is either hidden (behind a unit that may have come to rest in
+    # front of it: a candidate group's faces) or gone; only a gone one costs its half gate.
     occluders = list({j for c in uc for j in cur_groups[c]})
     front = np.array([current[j].position_mm for j in occluders], dtype=np.float64)
     front_sd = np.array([current[j].sigma_mm[2] for j in occluders], dtype=np.float64)
-    vacancy = np.array(
-        [0.0 if _covered(baseline, base_units[n][1], front, front_sd) else LOST_COST_MM for n in ur]
-    )
-    cost[:, len(uc) :] = np.where(np.eye(len(ur), dtype=bool), vacancy[:, None], big)
+    gone = {i: not _covered(baseline, [i], front, front_sd) for n in ur for i in base_units[n][1]}
+    costs = [
+        float(np.linalg.norm(t)) - 0.5 * gate_mm * sum(1 + gone[i] for i, _ in pairs)
+        for t, pairs in zip(motions, shares, strict=True)
+    ]
+    cost[:, len(uc) :] = np.where(np.eye(len(ur), dtype=bool), 0.0, big)
     which: dict[tuple[int, int], int] = {}
     for k, (n, c, x) in enumerate(zip(rows, cols, costs, strict=True)):
         cost[rpos[n], cpos_k[c]] = x

@@ -656,6 +656,23 @@ def test_still_unit_is_not_turned_about_its_face_seen_in_place() -> None:
     assert summary.displaced_units == 1
 
 
+def test_mover_come_to_rest_in_front_of_a_still_unit_keeps_its_faces() -> None:
+    """Recorded from an end-to-end dolos field (seed 28, everything within 60 mm of a still
+    unit): a neighbour moved 2.13 Dn, mostly towards the camera, and came to rest 22 mm in
+    front of the still unit with the same orientation, its three faces within 2 mm of the still
+    unit's, now hidden, across the line of sight. Both fit the faces by one translation: the
+    still unit shares three codes with them (22 mm), the mover two (44 mm). The still unit's
+    faces have the mover's in front of them, hidden, not gone, while the mover's old place is
+    empty: the mover keeps its faces and the still unit is not displaced (it was, with the
+    mover lost, while every shared face counted alike)."""
+    still, mover, summary, doc = _recorded_still_and_mover("landed_in_front_seed28.json")
+    assert still.status == "lost"
+    assert mover.status == "displaced"
+    err = np.asarray(mover.translation_mm) - np.asarray(doc["mover_true_translation_mm"])
+    assert np.linalg.norm(err) < 1.5
+    assert summary.displaced_units == 1
+
+
 @pytest.mark.parametrize("turn_deg", [0.0, 20.0])
 @pytest.mark.parametrize("move_mm", [(0.0, 35.0, -10.0), (-30.0, -20.0, 5.0)])
 def test_lost_unit_is_found_again_by_the_faces_it_shows_now(
