@@ -510,7 +510,8 @@ def assign_unit_groups(
     occluders = list({j for c in uc for j in cur_groups[c]})
     front = np.array([current[j].position_mm for j in occluders], dtype=np.float64)
     front_sd = np.array([current[j].sigma_mm[2] for j in occluders], dtype=np.float64)
-    gone = {i: not _covered(baseline, [i], front, front_sd) for n in ur for i in base_units[n][1]}
+    shared_faces = {i for pairs in shares for i, _ in pairs}
+    gone = {i: not _covered(baseline, [i], front, front_sd) for i in shared_faces}
     costs = [
         float(np.linalg.norm(t)) - 0.5 * gate_mm * sum(1 + gone[i] for i, _ in pairs)
         for t, pairs in zip(motions, shares, strict=True)

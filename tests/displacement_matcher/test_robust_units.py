@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from armourcam.field import dolos_geometry
 from displacement_matcher import match
 from displacement_matcher.damage import assess, thresholds
-from displacement_matcher.refine import match_units
+from displacement_matcher.refine import UnitAnalysis, match_units
 from displacement_matcher.types import DamageSummary, UnitMotion
 from displacement_matcher.units import (
     group_fiducials,
@@ -556,15 +556,23 @@ def _poses(rows: list[dict[str, Any]]) -> list[FiducialPose]:
     ]
 
 
-def _recorded_still_and_mover(
+def _recorded(
     name: str,
-) -> tuple[UnitMotion, UnitMotion, DamageSummary, dict[str, Any]]:
-    """A recorded patch with a still unit and a mover (``tests/displacement_matcher/data``),
-    matched with the dolos template: the still unit's and the mover's assessed motions, the
-    damage summary and the patch."""
+) -> tuple[UnitAnalysis, tuple[UnitMotion, ...], DamageSummary, dict[str, Any]]:
+    """A recorded patch (``tests/displacement_matcher/data``) matched with the dolos template:
+    the analysis, its assessed units, the damage summary and the patch."""
     doc = json.loads((DATA / name).read_text())
     an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
     units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    return an, units, summary, doc
+
+
+def _recorded_still_and_mover(
+    name: str,
+) -> tuple[UnitMotion, UnitMotion, DamageSummary, dict[str, Any]]:
+    """A recorded patch with a still unit and a mover (:func:`_recorded`): the still unit's and
+    the mover's assessed motions, the damage summary and the patch."""
+    _, units, summary, doc = _recorded(name)
     still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
     mover = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
     return still, mover, summary, doc
@@ -579,10 +587,7 @@ def test_still_unit_with_two_faces_in_place_is_not_moved_by_a_depth_outlier_and_
     to agree on a rigid 30 mm move; the unit's third face is seen exactly in place and the move
     left it unpaired. Two faces still seen where they were outweigh one pair that moved: the
     unit is looked for where it was, and nothing in the patch is displaced."""
-    doc = json.loads((DATA / "covered_unit_seed4.json").read_text())
-
-    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
-    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    _, units, summary, doc = _recorded("covered_unit_seed4.json")
     unit = next(u for u in units if set(u.baseline_indices) == set(doc["unit_baseline_indices"]))
     assert unit.status == "still"
     assert summary.displaced_units == 0
@@ -595,10 +600,7 @@ def test_covered_face_posed_near_is_not_a_lone_mover() -> None:
     newly seen code-17 face 42 mm away. The still unit's template, fitted to its two faces seen
     in place, puts its code-17 face where the covered one is seen (across the line of sight):
     it is that face, looked for where it was; nothing in the patch is displaced."""
-    doc = json.loads((DATA / "covered_face_seed0.json").read_text())
-
-    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
-    units, summary = assess(an.units, thresholds(GEO.dn_mm))
+    an, units, summary, doc = _recorded("covered_face_seed0.json")
     assert summary.displaced_units == 0
     covered = doc["covered_baseline_index"]
     pair = next(d for d in an.result.displacements if d.baseline_index == covered)
@@ -614,10 +616,7 @@ def test_still_unit_with_one_face_in_place_depth_included_is_not_moved_by_one_st
     neighbour's faces offered pairs to the others (a rigid 38 mm move). A face seen again in
     place, and within 12 mm in depth, stands against one pair that moved (most units do not
     move): the unit is looked for where it was and not counted displaced (it was before)."""
-    doc = json.loads((DATA / "covered_unit_seed12.json").read_text())
-
-    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=UMAP, gate_mm=50.0)
-    units, _ = assess(an.units, thresholds(GEO.dn_mm))
+    _, units, _, doc = _recorded("covered_unit_seed12.json")
     seen = doc["unit_baseline_indices"][0]
     assert next(u for u in units if seen in u.baseline_indices).status != "displaced"
 
