@@ -40,9 +40,11 @@ from .units import (
     UnitSpec,
     assign_units,
     branch_fit,
+    fits_template,
     has_positions,
     learn_pair_distances,
     mirror_normals,
+    seen_in_place,
     still_in_place,
     template_pose,
     unit_motions,
@@ -315,7 +317,7 @@ def match_units(
             for a in assigned:
                 for i in a.baseline_indices:
                     p = np.asarray(baseline[i].position_mm, dtype=np.float64) + a.translation_mm
-                    if _seen_in_place(pred[i], p, rigid_gate_mm):
+                    if seen_in_place(pred[i], p, rigid_gate_mm):
                         continue
                     pred[i] = p
                     gate[i] = translation_gate_mm
@@ -749,13 +751,13 @@ def _neighbour_faces_taken(
     positions within 5 mm RMS, normals within 30 deg), the fiducial is that neighbour's newly
     seen face and the pair is ruled out. A mover that landed beside a neighbour keeps its
     claim unless its face sits exactly where one of the neighbour's would
-    (:func:`_fits_template`). ``still``: :func:`_whole_in_place` of ``units``; ``match_of``:
+    (:func:`fits_template`). ``still``: :func:`_whole_in_place` of ``units``; ``match_of``:
     the result's pairs, baseline -> current index.
     """
     base, cur = result.baseline, result.current
 
     def moved(i: int) -> bool:
-        return not _seen_in_place(cur[match_of[i]].position_mm, base[i].position_mm)
+        return not seen_in_place(cur[match_of[i]].position_mm, base[i].position_mm)
 
     out: set[tuple[int, int]] = set()
     for u in units:
@@ -772,7 +774,7 @@ def _neighbour_faces_taken(
             if v.unit == u.unit or j in v.current_indices:
                 continue
             shown = [cur[k] for k in v.current_indices]
-            if _lacks_code_near(shown, int(taken.code), pos, span_mm) and _fits_template(
+            if _lacks_code_near(shown, int(taken.code), pos, span_mm) and fits_template(
                 [*shown, taken], template
             ):
                 out.add((i, j))
@@ -811,13 +813,13 @@ def _still_neighbours_faces(
     for i, j in lone.items():
         p = baseline[i]
         pos = np.asarray(p.position_mm, dtype=np.float64)
-        if _seen_in_place(current[j].position_mm, pos) or int(p.code) not in template.positions_mm:
+        if seen_in_place(current[j].position_mm, pos) or int(p.code) not in template.positions_mm:
             continue
         local = np.asarray(template.positions_mm[int(p.code)], dtype=np.float64)
         for v, faces, (R, t) in fitted:
             if i in v.baseline_indices:
                 continue
-            if _lacks_code_near(faces, int(p.code), pos, span_mm) and _seen_in_place(
+            if _lacks_code_near(faces, int(p.code), pos, span_mm) and seen_in_place(
                 R @ local + t, pos
             ):
                 out.add(i)
@@ -840,7 +842,7 @@ def _hidden_face_shown(
     of it) often shows another face instead, uncovered as a neighbour moved away; its hidden
     face meanwhile takes a same-code stranger 30-50 mm off, and the unit is counted displaced.
     Where a current fiducial of a code the unit did not show fits the template together with
-    the unit's baseline faces (:func:`_fits_template`: where that face would be had the unit
+    the unit's baseline faces (:func:`fits_template`: where that face would be had the unit
     not moved), the unit is seen in place: the pair is ruled out and its fiducial is looked for
     where it was. That fiducial must not also fit the template with the pair's current face (a
     unit moved mostly along the line of sight, which one image barely measures, still fits its
@@ -854,7 +856,7 @@ def _hidden_face_shown(
         j
         for i, j in match_of.items()
         if int(baseline[i].code) == int(current[j].code)
-        and _seen_in_place(current[j].position_mm, baseline[i].position_mm)
+        and seen_in_place(current[j].position_mm, baseline[i].position_mm)
     }
     unit_of = {i: u for u in units for i in u.baseline_indices}
     cur_pos = np.array([p.position_mm for p in current], dtype=np.float64).reshape(-1, 3)
@@ -863,7 +865,7 @@ def _hidden_face_shown(
     for i, j in lone.items():
         pos = np.asarray(baseline[i].position_mm, dtype=np.float64)
         u = unit_of.get(i)
-        if u is None or _seen_in_place(current[j].position_mm, pos):
+        if u is None or seen_in_place(current[j].position_mm, pos):
             continue
         faces = [baseline[k] for k in u.baseline_indices]
         shown = {int(f.code) for f in faces}
@@ -872,7 +874,7 @@ def _hidden_face_shown(
             code = int(current[c].code)
             if c == j or c in still_faces or code in shown or code not in template.positions_mm:
                 continue
-            if _fits_template([*faces, current[c]], template) and not _fits_template(
+            if fits_template([*faces, current[c]], template) and not fits_template(
                 [current[j], current[c]], template
             ):
                 out.add((i, j))
@@ -906,31 +908,12 @@ def _whole_in_place(
             not v.overturned
             and matched
             and all(
-                _seen_in_place(current[match_of[i]].position_mm, baseline[i].position_mm)
+                seen_in_place(current[match_of[i]].position_mm, baseline[i].position_mm)
                 for i in matched
             )
         ):
             out.append(v)
     return out
-
-
-def _fits_template(poses: Sequence[FiducialPose], template: UnitSpec) -> bool:
-    """Whether the poses are one unit's faces: the template fitted to them
-    (:func:`template_pose`) places every one within :data:`STILL_SHOWN_MM` of its measured
-    position across the line of sight, where one image measures precisely (the fit's own
-    5 mm RMS bound would let two faces misfit by 10 mm: too loose to call a fiducial a
-    neighbour's face)."""
-    fit = template_pose(poses, template)
-    if fit is None:
-        return False
-    R, t = fit
-    for p in poses:
-        if int(p.code) not in template.positions_mm:
-            return False
-        at = R @ np.asarray(template.positions_mm[int(p.code)], dtype=np.float64) + t
-        if not _seen_in_place(at, p.position_mm):
-            return False
-    return True
 
 
 def _contested_lone_pairs(
@@ -973,19 +956,19 @@ def _contested_lone_pairs(
     out: set[tuple[int, int]] = set()
     for i, j in lone.items():
         pos = np.asarray(current[j].position_mm, dtype=np.float64)
-        if _seen_in_place(pos, baseline[i].position_mm):
+        if seen_in_place(pos, baseline[i].position_mm):
             continue  # a face seen in place is its own evidence
         code = int(current[j].code)
         for k in rows:
             if unit_of[k] == unit_of.get(i) or int(baseline[k].code) != code:
                 continue
-            if _seen_in_place(pred[k], pos):
+            if seen_in_place(pred[k], pos):
                 out.add((i, j))
                 break
             own = pair_of_unit.get(unit_of[k])
             if (
                 own is not None
-                and _seen_in_place(current[own[1]].position_mm, pos, span_mm)
+                and seen_in_place(current[own[1]].position_mm, pos, span_mm)
                 and _turned_onto(baseline, current, own, k, j)
             ):
                 out.add((i, j))
@@ -1032,7 +1015,7 @@ def _turned_onto(
     worst, R, t = best
     if worst < np.cos(np.radians(15.0)):
         return False
-    return _seen_in_place(R @ pb[1] + t, pa[1])
+    return seen_in_place(R @ pb[1] + t, pa[1])
 
 
 def _mostly_in_place(
@@ -1061,15 +1044,3 @@ def _mostly_in_place(
         elif i in pair_of:
             moved += 1
     return (stayed >= 2 and stayed > moved) or (stayed == moved == deep == 1)
-
-
-def _seen_in_place(
-    point: NDArray[np.float64] | Any,
-    where: NDArray[np.float64] | Any,
-    within_mm: float = STILL_SHOWN_MM,
-) -> bool:
-    """Whether ``point`` lies within ``within_mm`` of ``where`` across the line of sight
-    through ``where`` (what one image measures precisely; depth aside)."""
-    w = np.asarray(where, dtype=np.float64)
-    off = across_line_of_sight(np.asarray(point, dtype=np.float64) - w, w)
-    return bool(np.linalg.norm(off) <= within_mm)

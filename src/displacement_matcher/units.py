@@ -52,7 +52,7 @@ from pose_estimator.types import FiducialPose
 from pose_estimator.yaml_file import YamlFileError, load_yaml
 
 from .errors import MatcherError
-from .rigid import consistent_subset, rigid_fit, rms_misfit
+from .rigid import across_line_of_sight, consistent_subset, rigid_fit, rms_misfit
 from .types import MatchResult, UnitMotion
 
 DEFAULT_SPAN_MM = 40.0
@@ -1016,6 +1016,37 @@ def unit_motions(
     return tuple(out), tuple(unassigned)
 
 
+def seen_in_place(
+    point: NDArray[np.float64] | Any,
+    where: NDArray[np.float64] | Any,
+    within_mm: float = STILL_SHOWN_MM,
+) -> bool:
+    """Whether ``point`` lies within ``within_mm`` of ``where`` across the line of sight
+    through ``where`` (what one image measures precisely; depth aside)."""
+    w = np.asarray(where, dtype=np.float64)
+    off = across_line_of_sight(np.asarray(point, dtype=np.float64) - w, w)
+    return bool(np.linalg.norm(off) <= within_mm)
+
+
+def fits_template(poses: Sequence[FiducialPose], template: UnitSpec) -> bool:
+    """Whether the poses are one unit's faces: the template fitted to them
+    (:func:`template_pose`) places every one within :data:`STILL_SHOWN_MM` of its measured
+    position across the line of sight, where one image measures precisely (the fit's own
+    5 mm RMS bound would let two faces misfit by 10 mm: too loose to call a fiducial a
+    neighbour's face)."""
+    fit = template_pose(poses, template)
+    if fit is None:
+        return False
+    R, t = fit
+    for p in poses:
+        if int(p.code) not in template.positions_mm:
+            return False
+        at = R @ np.asarray(template.positions_mm[int(p.code)], dtype=np.float64) + t
+        if not seen_in_place(at, p.position_mm):
+            return False
+    return True
+
+
 def still_in_place(
     baseline: Sequence[FiducialPose], current: Sequence[FiducialPose]
 ) -> dict[int, int]:
@@ -1174,14 +1205,20 @@ def _relocated(
             found.append((list(g), fit[0], fit[1]))
     if not found:
         return []
+    # Appeared fiducials seen with no other face of their unit now (a face of a group may be a
+    # mover's come nearer along the line of sight, which one image barely measures).
+    alone = free - {j for g in cur_groups if len(g) >= 2 for j in g}
     rows = []
     for n, (_, ix) in enumerate(unit_list):
         if not ix or n in skip_units or n in has_same or len(pairs_of[n]) > 1:
             continue
         if any(i in shown for i in ix):
             continue
-        if all(int(base[i].code) in template.positions_mm for i in ix):
-            rows.append(n)
+        if not all(int(base[i].code) in template.positions_mm for i in ix):
+            continue
+        if _shows_hidden_face([base[i] for i in ix], cur, alone, template, limit_mm):
+            continue
+        rows.append(n)
     if not rows:
         return []
     big = 10.0 * limit_mm
@@ -1200,6 +1237,31 @@ def _relocated(
         for r, c in zip(ri.tolist(), ci.tolist(), strict=True)
         if cost[r, c] < big
     ]
+
+
+def _shows_hidden_face(
+    faces: Sequence[FiducialPose],
+    cur: tuple[FiducialPose, ...],
+    free: set[int],
+    template: UnitSpec,
+    reach_mm: float,
+) -> bool:
+    """Whether a unit that lost every face it showed shows now, where it was, a face it hid
+    before: an appeared fiducial (``free``) of a code it did not show, within ``reach_mm`` of
+    its faces, that fits the template together with them (:func:`fits_template`). A still
+    unit whose one seen face is hidden after the run (covered, or a neighbour moved in front)
+    often shows another then; it is not a unit that moved far (:func:`_relocated`)."""
+    codes = {int(f.code) for f in faces}
+    old = np.array([f.position_mm for f in faces], dtype=np.float64)
+    for j in sorted(free):
+        p = cur[j]
+        code = int(p.code)
+        if code in codes or code not in template.positions_mm:
+            continue
+        near = np.linalg.norm(old - np.asarray(p.position_mm, dtype=np.float64), axis=1)
+        if np.min(near) <= reach_mm and fits_template([*faces, p], template):
+            return True
+    return False
 
 
 def _relocated_motion(

@@ -672,6 +672,21 @@ def test_mover_come_to_rest_in_front_of_a_still_unit_keeps_its_faces() -> None:
     assert summary.displaced_units == 1
 
 
+def test_lost_unit_showing_in_place_a_face_it_hid_is_not_relocated() -> None:
+    """Recorded from an end-to-end dolos field (seed 25, everything within 80 mm of a still
+    unit): the one face the still unit showed before the run (code 17) is hidden after it, and
+    its code-29 face, hidden before, now shows where it is. Nothing of it matches, and a
+    neighbour seen only after the run shows two faces 2.6 Dn away that the template fits: the
+    unit was moved there. The face it shows in place, fitting the template together with its old
+    face, and alone (no other face of a unit beside it now), says it did not move: it is not
+    relocated, keeps that face, and is not counted displaced; the patch's count is the truth."""
+    _, units, summary, doc = _recorded("hidden_face_shown_seed25.json")
+    unit = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    assert unit.status != "displaced"
+    assert set(doc["unit_current_indices"]) <= set(unit.current_indices)
+    assert summary.displaced_units == doc["true_displaced_units"]
+
+
 @pytest.mark.parametrize("turn_deg", [0.0, 20.0])
 @pytest.mark.parametrize("move_mm", [(0.0, 35.0, -10.0), (-30.0, -20.0, 5.0)])
 def test_lost_unit_is_found_again_by_the_faces_it_shows_now(
