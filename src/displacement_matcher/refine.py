@@ -229,11 +229,13 @@ def match_units(
         gate = np.full(len(baseline), np.nan)
         # Units whose motion is one pair's own offset: (baseline, current) of that pair.
         lone: dict[int, int] = {}
+        # The same of units called overturned (one pair across codes, most often).
+        lone_turned: dict[int, int] = {}
         for u in units:
-            if u.overturned:
-                continue
             if u.n_matched == 1:
-                lone.update((i, pair_of[i]) for i in u.baseline_indices if i in pair_of)
+                (lone_turned if u.overturned else lone).update(
+                    (i, pair_of[i]) for i in u.baseline_indices if i in pair_of
+                )
         # Units seen in place, for the template's rules (found once per pass).
         still = _whole_in_place(units, baseline, current, pair_of) if template is not None else []
         covered = (
@@ -242,7 +244,9 @@ def match_units(
             else set()
         )
         shown_in_place = (
-            _hidden_face_shown(baseline, current, units, lone, template, span, pair_of)
+            _hidden_face_shown(
+                baseline, current, units, lone | lone_turned, template, span, pair_of
+            )
             if template is not None
             else set()
         )
@@ -847,8 +851,11 @@ def _hidden_face_shown(
     where it was. That fiducial must not also fit the template with the pair's current face (a
     unit moved mostly along the line of sight, which one image barely measures, still fits its
     old place: its own face fits both, and tells nothing). Current fiducials held by a pair seen
-    in place are another unit's. Returns such pairs (30 dolos-field seeds, template map: still
-    units counted displaced 19 -> 14, false displaced 37 -> 31, missed 60 -> 59)."""
+    in place are another unit's. The shown fiducial is the unit's own, so a pair another
+    baseline fiducial made into it (a same-code stranger's) is ruled out too. Returns such
+    pairs (30 dolos-field seeds, template map: still units counted displaced 19 -> 14, false
+    displaced 37 -> 31, missed 60 -> 59; with the stranger's pair and lone pairs of units
+    called overturned, a pair across codes most often, 3 -> 2 and 22 / 32 -> 20 / 32)."""
     out: set[tuple[int, int]] = set()
     if not lone or not current:
         return out
@@ -859,6 +866,7 @@ def _hidden_face_shown(
         and seen_in_place(current[j].position_mm, baseline[i].position_mm)
     }
     unit_of = {i: u for u in units for i in u.baseline_indices}
+    held_by = {j: i for i, j in match_of.items()}
     cur_pos = np.array([p.position_mm for p in current], dtype=np.float64).reshape(-1, 3)
     ok = np.all(np.isfinite(cur_pos), axis=1)
     tree = cKDTree(np.where(ok[:, None], cur_pos, 1e12))
@@ -878,6 +886,9 @@ def _hidden_face_shown(
                 [current[j], current[c]], template
             ):
                 out.add((i, j))
+                k = held_by.get(c)
+                if k is not None:
+                    out.add((k, c))
                 break
     return out
 

@@ -687,6 +687,28 @@ def test_lost_unit_showing_in_place_a_face_it_hid_is_not_relocated() -> None:
     assert summary.displaced_units == doc["true_displaced_units"]
 
 
+def test_face_shown_in_place_is_the_still_units_not_a_turned_neighbours() -> None:
+    """Recorded from an end-to-end dolos field (seed 11, everything within 80 mm of a still
+    unit): the one face the still unit showed before the run (code 17) is hidden after it and
+    its code-29 face shows where it was. Its neighbour turned over and moved 1.08 Dn; of the
+    neighbour's old faces (codes 17 and 29) none shows now, only its code-41 face. The global
+    matching paired the neighbour's code-29 face with the still unit's (39 mm) and the still
+    unit's code-17 face across codes with the neighbour's code-41 face, so the still unit was
+    called overturned and counted displaced. The face shown in place fits the template with the
+    still unit's old face: it is that unit's, so the pair across codes and the stranger's pair
+    into the shown face are both ruled out; the still unit is not displaced and keeps its face,
+    and the neighbour is called overturned through its own face."""
+    _, units, _, doc = _recorded("hidden_face_shown_seed11.json")
+    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    assert still.status != "displaced"
+    assert not still.overturned
+    assert set(doc["unit_current_indices"]) <= set(still.current_indices)
+    turned = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    assert set(turned.baseline_indices) == set(doc["mover_baseline_indices"])
+    assert turned.overturned
+    assert set(turned.current_indices) == set(doc["mover_current_indices"])
+
+
 @pytest.mark.parametrize("turn_deg", [0.0, 20.0])
 @pytest.mark.parametrize("move_mm", [(0.0, 35.0, -10.0), (-30.0, -20.0, 5.0)])
 def test_lost_unit_is_found_again_by_the_faces_it_shows_now(
