@@ -1187,7 +1187,8 @@ def _relocated(
     same-code match, at most one cross-code one (which alone does not measure a unit) and no
     face still seen in place; the cost of a pair is the mean distance from the unit's old faces
     to where the fitted template puts them now, below ``limit_mm``, and the assignment is one to
-    one at minimum total cost (several lost units may share a neighbourhood).
+    one at minimum total cost (several lost units may share a neighbourhood). A unit that shows
+    now, where it was, a face it hid before (:func:`_shows_hidden_face`) is not a candidate.
 
     Returns
     -------
@@ -1207,7 +1208,9 @@ def _relocated(
         return []
     # Appeared fiducials seen with no other face of their unit now (a face of a group may be a
     # mover's come nearer along the line of sight, which one image barely measures).
-    alone = free - {j for g in cur_groups if len(g) >= 2 for j in g}
+    alone = np.array(
+        sorted(free - {j for g in cur_groups if len(g) >= 2 for j in g}), dtype=np.intp
+    )
     rows = []
     for n, (_, ix) in enumerate(unit_list):
         if not ix or n in skip_units or n in has_same or len(pairs_of[n]) > 1:
@@ -1242,24 +1245,28 @@ def _relocated(
 def _shows_hidden_face(
     faces: Sequence[FiducialPose],
     cur: tuple[FiducialPose, ...],
-    free: set[int],
+    alone: NDArray[np.intp],
     template: UnitSpec,
     reach_mm: float,
 ) -> bool:
     """Whether a unit that lost every face it showed shows now, where it was, a face it hid
-    before: an appeared fiducial (``free``) of a code it did not show, within ``reach_mm`` of
-    its faces, that fits the template together with them (:func:`fits_template`). A still
-    unit whose one seen face is hidden after the run (covered, or a neighbour moved in front)
-    often shows another then; it is not a unit that moved far (:func:`_relocated`)."""
+    before: an appeared fiducial (index in ``alone``) of a code it did not show, within
+    ``reach_mm`` of its faces, that fits the template together with them
+    (:func:`fits_template`). A still unit whose one seen face is hidden after the run (covered,
+    or a neighbour moved in front) often shows another then; it is not a unit that moved far
+    (:func:`_relocated`)."""
+    if alone.size == 0:
+        return False
     codes = {int(f.code) for f in faces}
     old = np.array([f.position_mm for f in faces], dtype=np.float64)
-    for j in sorted(free):
+    now = np.array([cur[j].position_mm for j in alone.tolist()], dtype=np.float64)
+    near = np.min(np.linalg.norm(now[:, None, :] - old[None, :, :], axis=2), axis=1)
+    for j in alone[near <= reach_mm].tolist():
         p = cur[j]
         code = int(p.code)
         if code in codes or code not in template.positions_mm:
             continue
-        near = np.linalg.norm(old - np.asarray(p.position_mm, dtype=np.float64), axis=1)
-        if np.min(near) <= reach_mm and fits_template([*faces, p], template):
+        if fits_template([*faces, p], template):
             return True
     return False
 
