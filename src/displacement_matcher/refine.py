@@ -40,6 +40,7 @@ from .units import (
     UnitSpec,
     assign_units,
     branch_fit,
+    faces_shown_in_place,
     fits_template,
     has_positions,
     learn_pair_distances,
@@ -876,15 +877,14 @@ def _hidden_face_shown(
         if u is None or seen_in_place(current[j].position_mm, pos):
             continue
         faces = [baseline[k] for k in u.baseline_indices]
-        shown = {int(f.code) for f in faces}
         # Depth, a single image's weak axis, gets the fit's slack beyond the unit's span.
-        for c in sorted(tree.query_ball_point(pos, span_mm + 10.0)):
-            code = int(current[c].code)
-            if c == j or c in still_faces or code in shown or code not in template.positions_mm:
-                continue
-            if fits_template([*faces, current[c]], template) and not fits_template(
-                [current[j], current[c]], template
-            ):
+        near = [
+            c
+            for c in sorted(tree.query_ball_point(pos, span_mm + 10.0))
+            if c != j and c not in still_faces
+        ]
+        for c in faces_shown_in_place(faces, current, near, template):
+            if not fits_template([current[j], current[c]], template):
                 out.add((i, j))
                 k = held_by.get(c)
                 if k is not None:

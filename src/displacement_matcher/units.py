@@ -38,7 +38,7 @@ Camera frame, millimetres.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -1242,6 +1242,25 @@ def _relocated(
     ]
 
 
+def faces_shown_in_place(
+    faces: Sequence[FiducialPose],
+    cur: Sequence[FiducialPose],
+    candidates: Iterable[int],
+    template: UnitSpec,
+) -> Iterator[int]:
+    """The current fiducials among ``candidates``, in their order, that a unit showing
+    ``faces`` before hid then and shows now where it was: of a template code the unit did not
+    show, fitting the template together with its faces (:func:`fits_template`)."""
+    codes = {int(f.code) for f in faces}
+    for j in candidates:
+        p = cur[j]
+        code = int(p.code)
+        if code in codes or code not in template.positions_mm:
+            continue
+        if fits_template([*faces, p], template):
+            yield j
+
+
 def _shows_hidden_face(
     faces: Sequence[FiducialPose],
     cur: tuple[FiducialPose, ...],
@@ -1250,25 +1269,17 @@ def _shows_hidden_face(
     reach_mm: float,
 ) -> bool:
     """Whether a unit that lost every face it showed shows now, where it was, a face it hid
-    before: an appeared fiducial (index in ``alone``) of a code it did not show, within
-    ``reach_mm`` of its faces, that fits the template together with them
-    (:func:`fits_template`). A still unit whose one seen face is hidden after the run (covered,
-    or a neighbour moved in front) often shows another then; it is not a unit that moved far
-    (:func:`_relocated`)."""
+    before (:func:`faces_shown_in_place`): an appeared fiducial (index in ``alone``) within
+    ``reach_mm`` of its faces. A still unit whose one seen face is hidden after the run
+    (covered, or a neighbour moved in front) often shows another then; it is not a unit that
+    moved far (:func:`_relocated`)."""
     if alone.size == 0:
         return False
-    codes = {int(f.code) for f in faces}
     old = np.array([f.position_mm for f in faces], dtype=np.float64)
     now = np.array([cur[j].position_mm for j in alone.tolist()], dtype=np.float64)
     near = np.min(np.linalg.norm(now[:, None, :] - old[None, :, :], axis=2), axis=1)
-    for j in alone[near <= reach_mm].tolist():
-        p = cur[j]
-        code = int(p.code)
-        if code in codes or code not in template.positions_mm:
-            continue
-        if fits_template([*faces, p], template):
-            return True
-    return False
+    within = alone[near <= reach_mm].tolist()
+    return next(faces_shown_in_place(faces, cur, within, template), None) is not None
 
 
 def _relocated_motion(
