@@ -91,7 +91,13 @@ def read_image(path: str | Path) -> NDArray[np.generic]:
         raise ImageReadError(f"{name}: {kind_of} JPEG ({len(data)} bytes): {damage}")
     flags = cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION
     with _decoder_messages() as messages:
-        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+        try:
+            image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+        except cv2.error as err:
+            # OpenCV refuses, rather than decodes, a header claiming an absurd size.
+            raise ImageReadError(
+                f"{name}: {kind.upper()} data OpenCV will not decode ({_first_line(err)})"
+            ) from err
     said = f" ({messages[0]})" if messages else ""
     if image is None or image.size == 0:
         raise ImageReadError(f"{name}: corrupt {kind.upper()} data, cannot be decoded{said}")
@@ -132,3 +138,11 @@ def _decoder_messages() -> Iterator[list[str]]:
                 )
     finally:
         os.close(saved)
+
+
+def _first_line(err: Exception) -> str:
+    """The gist of an OpenCV error: its message without the source location."""
+    text = str(err).strip()
+    found = re.search(r"error: \([^)]*\) (.*)", text)
+    gist = found.group(1) if found else text
+    return gist.splitlines()[0] if gist else type(err).__name__

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from displacement_matcher.atomic import write_atomic
 from fiducial_detector.codebook import BITS, code_bits, code_count
 from fiducial_detector.design import FiducialDesign, get_design, reflectance
 
@@ -756,5 +757,6 @@ def write_targets(
         raise PrintError(
             f"unsupported output {str(out)!r}: use a .pdf (sheet) or .png (one target)"
         )
-    out.write_bytes(data)
+    # Atomic: a failed write (a full disk) leaves an earlier sheet of that name whole.
+    write_atomic(out, data)
     return summary

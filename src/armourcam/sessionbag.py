@@ -31,6 +31,9 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -213,6 +216,30 @@ def session_truth(field: Field, spec: SessionSpec, dn_threshold: float = 1.0) ->
             },
         ],
     }
+
+
+def replace_session_bag(path: Path, spec: SessionSpec | None = None) -> dict[str, Any]:
+    """:func:`write_session_bag`, replacing a bag already at ``path`` only once the new one and
+    its ground truth are complete: they are rendered in a hidden directory beside it and moved
+    into place, so a failure or an interrupt (a full disk, Ctrl-C) leaves the old bag whole."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    old = work / "replaced"
+    try:
+        fresh = work / path.name
+        truth = write_session_bag(fresh, spec)
+        if path.exists():
+            os.replace(path, old)
+        os.replace(fresh, path)
+        for new_file, target in zip(truth_paths(fresh), truth_paths(path), strict=True):
+            os.replace(new_file, target)
+    except BaseException:
+        if old.exists() and not path.exists():
+            os.replace(old, path)
+        raise
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return truth
 
 
 def write_session_bag(path: Path, spec: SessionSpec | None = None) -> dict[str, Any]:

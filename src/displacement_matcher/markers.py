@@ -23,10 +23,11 @@ import numpy as np
 from pose_estimator.types import FiducialPose
 
 from .compare import compare_poses
-from .damage import thresholds
+from .damage import DEFAULT_MOVED_MM, thresholds
+from .errors import MatcherError
 from .report import report_dict
 from .session import Comparison, MarkerSpec
-from .types import Displacement, MatchResult, UnitMotion
+from .types import DamageThresholds, Displacement, MatchResult, UnitMotion
 from .units import UnitMap
 
 DEFAULT_DN_MM = 20.5  # a 38 mm model dolos (Dn ~ 0.54 H)
@@ -117,9 +118,32 @@ class Comparer:
     section_width_mm: float | None = None
     unit_map: UnitMap | None = None
 
+    def __post_init__(self) -> None:
+        # Checked here, where the settings are given (a command line, a node's parameters),
+        # not at the first wave run, whose comparison would otherwise fail.
+        self.thresholds()
+        w = self.section_width_mm
+        if w is not None and not (math.isfinite(w) and w > 0):
+            raise MatcherError(f"section width must be a positive length in mm, got {w!r}")
+
+    def thresholds(self) -> DamageThresholds:
+        """The damage thresholds; the movement threshold is the default one
+        (:data:`.damage.DEFAULT_MOVED_MM`) or the displacement threshold where that is smaller.
+
+        Raises
+        ------
+        MatcherError
+            For a Dn or displacement threshold that is not a positive length.
+        """
+        limit = self.dn_mm * self.displaced_dn
+        moved = DEFAULT_MOVED_MM
+        if math.isfinite(limit) and 0 < limit < moved:
+            moved = limit
+        return thresholds(self.dn_mm, displaced_dn=self.displaced_dn, moved_mm=moved)
+
     def __call__(self, before: Sequence[FiducialPose], after: Sequence[FiducialPose]) -> Comparison:
         """Match ``after`` against ``before``; report, markers and displacement rows."""
-        limits = thresholds(self.dn_mm, displaced_dn=self.displaced_dn)
+        limits = self.thresholds()
         a = compare_poses(
             list(before),
             list(after),

@@ -90,7 +90,6 @@ from armourcam.graph import (
     worst_level,
 )
 
-from .damage import thresholds
 from .errors import MatcherError
 from .markers import Comparer, displacement_records
 from .session import (
@@ -294,7 +293,6 @@ class DisplacementMatcherNode(Node):
                 section_width_mm=cfg.section_width_mm or None,
                 unit_map=unit_map,
             )
-            thresholds(cfg.dn_mm, displaced_dn=cfg.displaced_dn)  # bad limits fail at start-up
             self.session = Session(cfg.session_config(), compare=comparer)
         except (SessionError, MatcherError) as err:
             raise GraphError(f"displacement_matcher: {err}") from err

@@ -190,8 +190,21 @@ def parse_unit_map(doc: Any) -> UnitMap:
     if "template" in doc:
         tdoc = doc["template"]
         spec = _spec("template", tdoc)
-        span = float(tdoc.get("span_mm", 0.0) or 0.0)
+        raw_span = tdoc.get("span_mm")
+        span = 0.0
+        if raw_span is not None:
+            try:
+                span = float(raw_span)
+            except (TypeError, ValueError) as err:
+                raise MatcherError(
+                    f"template span_mm must be a length in mm, got {raw_span!r}"
+                ) from err
+            if not (np.isfinite(span) and span > 0):
+                raise MatcherError(
+                    f"template span_mm must be a positive length in mm, got {raw_span!r}"
+                )
         if span <= 0:
+            # Not given: the template's own extent, or the default without positions.
             span = DEFAULT_SPAN_MM
             if len(spec.positions_mm) >= 2:
                 pts = np.array(list(spec.positions_mm.values()))
@@ -201,6 +214,11 @@ def parse_unit_map(doc: Any) -> UnitMap:
     if not isinstance(udoc, Mapping) or not udoc:
         raise MatcherError("unit map: 'units' must be a non-empty mapping of unit id -> unit")
     specs = tuple(_spec(str(k), v) for k, v in udoc.items())
+    names = [s.unit for s in specs]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        # YAML keeps 1 and "1" apart; the report, the CSVs and the markers do not.
+        raise MatcherError(f"unit id {twice[0]!r} is given twice (e.g. as 1 and '1')")
     owner: dict[int, str] = {}
     for s in specs:
         for c in s.codes:

@@ -323,6 +323,12 @@ class CameraModel:
             k = node("camera_matrix", "cameraMatrix").mat()
             d_node = node("distortion_coefficients", "distCoeffs", required=False)
             d = np.zeros(5) if d_node is None else d_node.mat()
+        except cv2.error as err:
+            # A matrix whose rows x cols disagree with its data, most often.
+            raise CalibrationError(
+                f"calibration {path}: malformed OpenCV matrix (its rows x cols do not match "
+                f"its data, or a field is not a matrix)"
+            ) from err
         finally:
             fs.release()
         if k is None or d is None or np.asarray(k).size != 9:

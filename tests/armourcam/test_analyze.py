@@ -257,3 +257,72 @@ def test_demo_draws_each_run_on_the_scene_after_it() -> None:
     assert np.array_equal(afters[0], first)
     assert np.array_equal(afters[1], frames[-1][1])
     assert not np.array_equal(afters[0], afters[1])
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--dn-mm", "0"], "Dn must be a positive length"),
+        (["--dn-mm", "nan"], "Dn must be a positive length"),
+        (["--displaced-dn", "-1"], "displacement threshold must be positive"),
+        (["--section-width-mm", "inf"], "section width must be a positive length"),
+    ],
+)
+def test_analyze_refuses_bad_damage_settings_before_reading_the_bag(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], option: list[str], message: str
+) -> None:
+    """A threshold no run could be measured with is a usage error (exit 2) named up front, not
+    a report of runs "not measured" with exit status 0; nothing is written."""
+    from armourcam.cli import main
+
+    out = tmp_path / "out"
+    assert main(["analyze", str(BAG), "--out", str(out), *option]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_small_displacement_threshold_lowers_the_movement_threshold_with_it() -> None:
+    """``--displaced-dn 0.05`` (about 1 mm) is a valid setting: the movement threshold, which
+    may not exceed it and has no option of its own here, follows it down from 2 mm."""
+    from displacement_matcher.markers import Comparer
+
+    limits = Comparer(dn_mm=20.5, displaced_dn=0.05).thresholds()
+    assert limits.displaced_mm == pytest.approx(1.025)
+    assert limits.moved_mm == pytest.approx(1.025)
+    assert Comparer().thresholds().moved_mm == 2.0
+
+
+def test_make_bags_keeps_the_old_bag_until_the_new_one_is_complete(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Rendering fails half-way (a full disk, an interrupt): the bag and truth already there
+    are untouched and no partial directory is left; once rendering succeeds, the new bag and
+    its truth replace them."""
+    spec = sessionbag.SessionSpec(
+        width=376, height=250, n_units=4, baseline_frames=1, during_frames=1, after_frames=1
+    )
+    bag = tmp_path / "tiny"
+    sessionbag.write_session_bag(bag, spec)
+    files = sorted(p for p in tmp_path.rglob("*") if p.is_file())
+    old = {p: p.read_bytes() for p in files}
+    real = sessionbag.write_session_bag
+
+    def fails_half_way(path: Path, spec: sessionbag.SessionSpec | None = None) -> object:
+        real(path, spec)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sessionbag, "write_session_bag", fails_half_way)
+    with pytest.raises(KeyboardInterrupt):
+        sessionbag.replace_session_bag(bag, spec)
+    assert sorted(p for p in tmp_path.rglob("*") if p.is_file()) == files
+    assert all(p.read_bytes() == data for p, data in old.items())
+    monkeypatch.setattr(sessionbag, "write_session_bag", real)
+    other = sessionbag.SessionSpec(
+        width=376, height=250, n_units=4, baseline_frames=2, during_frames=1, after_frames=1
+    )
+    sessionbag.replace_session_bag(bag, other)
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file()) == sorted(
+        p.relative_to(tmp_path) for p in files
+    )
+    with bagio.open_bag(bag) as b:
+        assert b.topics[sessionbag.COMPRESSED_TOPIC].count == 2 + 3 + 2

@@ -238,3 +238,38 @@ def test_truncated_jpeg_files_get_one_line_errors(
     assert cut.startswith(f"armourcam detect: error: {paths[0]}: truncated JPEG"), cut
     assert noscan.startswith(f"armourcam detect: error: {paths[1]}: damaged JPEG"), noscan
     assert "no entropy-coded" in noscan or "scan" in noscan, noscan
+
+
+def _png_chunk(kind: bytes, body: bytes) -> bytes:
+    import struct
+    import zlib
+
+    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+
+def test_a_png_claiming_an_absurd_size_is_a_one_line_error(
+    tmp_path: Path, scene_image: np.ndarray, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A 70-byte PNG whose header claims 100000 x 100000 pixels (OpenCV refuses such a header
+    with an exception, not a None) is a one-line error naming the file; the good file after it
+    is still processed."""
+    import struct
+    import zlib
+
+    header = struct.pack(">IIBBBBB", 100_000, 100_000, 8, 0, 0, 0, 0)
+    bomb = (
+        b"\x89PNG\r\n\x1a\n"
+        + _png_chunk(b"IHDR", header)
+        + _png_chunk(b"IDAT", zlib.compress(b"\x00" * 9))
+        + _png_chunk(b"IEND", b"")
+    )
+    path = tmp_path / "bomb.png"
+    path.write_bytes(bomb)
+    with pytest.raises(ImageReadError, match=r"bomb\.png: PNG data OpenCV will not decode"):
+        read_image(path)
+    good = tmp_path / "good.png"
+    assert cv2.imwrite(str(good), scene_image)
+    status, out, err = _run(capsys, str(path), str(good))
+    assert status == 1 and f"{good}: 2 fiducials" in out
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"armourcam detect: error: {path}: PNG data OpenCV will not decode")

@@ -570,3 +570,28 @@ def test_cli_errors_are_one_line_and_write_nothing(
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and re.search(match, err)
     assert not list(tmp_path.iterdir())
+
+
+def test_a_failed_write_leaves_the_earlier_sheet_whole(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A sheet is written atomically: where the disk fills mid-write (here: the flush to disk
+    fails), the sheet printed before under that name is still there, byte for byte, and no
+    partial file is left beside it."""
+    import errno
+    import os
+
+    from displacement_matcher import atomic
+
+    path = tmp_path / "sheet.pdf"
+    write_targets(path, "ring", [0, 1], 7.1, 600)
+    before = path.read_bytes()
+
+    def full_disk(fd: int) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(atomic.os, "fsync", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        write_targets(path, "ring", list(range(40)), 7.1, 600, copies=20)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["sheet.pdf"]

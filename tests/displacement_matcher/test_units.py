@@ -200,6 +200,12 @@ def test_explicit_unit_map_and_unknown_codes(tmp_path: pytest.TempPathFactory) -
         ({"units": {}, "template": {"codes": [1]}}, "exactly one of"),
         ([1, 2], "must be a mapping"),
         ({"units": {"A": {"codes": [1], "colour": "red"}}}, "unknown keys"),
+        # YAML keeps the keys 1 and "1" apart; every output names units by their string.
+        ({"units": {1: {"codes": [1]}, "1": {"codes": [2]}}}, "unit id '1' is given twice"),
+        ({"template": {"codes": [1, 2], "span_mm": [1, 2]}}, "span_mm must be a length"),
+        ({"template": {"codes": [1, 2], "span_mm": "abc"}}, "span_mm must be a length"),
+        ({"template": {"codes": [1, 2], "span_mm": float("nan")}}, "positive length"),
+        ({"template": {"codes": [1, 2], "span_mm": -5}}, "positive length"),
     ],
 )
 def test_bad_unit_maps_raise_clear_errors(doc: object, message: str) -> None:

@@ -247,6 +247,19 @@ def test_opencv_calibration_files_are_read(tmp_path: Path, n_coefficients: int) 
         CameraModel.from_yaml(tmp_path / "short.yaml")
 
 
+def test_opencv_matrix_whose_shape_disagrees_with_its_data_is_named(tmp_path: Path) -> None:
+    """An !!opencv-matrix of rows x cols other than its data's length (OpenCV itself asserts)
+    is a CalibrationError naming the file, not OpenCV's traceback."""
+    path = tmp_path / "short_matrix.yaml"
+    path.write_text(
+        "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n"
+        "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        "   data: [ 500., 0., 320., 0., 500., 240. ]\n"
+    )
+    with pytest.raises(CalibrationError, match=r"short_matrix\.yaml: malformed OpenCV matrix"):
+        CameraModel.from_yaml(path)
+
+
 def test_a_key_given_twice_is_an_error_naming_both_lines(tmp_path: Path) -> None:
     """PyYAML lets the last of two equal keys win silently: a pasted second
     distortion_coefficients would change every depth without a word."""

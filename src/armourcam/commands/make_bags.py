@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -47,16 +46,14 @@ def _size(path: Path) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Write the bags; prints their sizes."""
-    from armourcam.sessionbag import SessionSpec, truth_paths, write_session_bag
+    from armourcam.sessionbag import SessionSpec, replace_session_bag, truth_paths
 
     jobs = [(args.out / SMALL_NAME, SessionSpec(seed=args.seed))]
     if args.large:
         spec = SessionSpec(width=3008, height=2000, compressed=False, seed=args.seed)
         jobs.append((args.out / "large" / LARGE_NAME, spec))
     for path, spec in jobs:
-        if path.exists():
-            shutil.rmtree(path)
-        truth = write_session_bag(path, spec)
+        truth = replace_session_bag(path, spec)
         n = len(truth["runs"][0]["cumulative"]["fiducials"])
         size = _size(path) + sum(p.stat().st_size for p in truth_paths(path))
         print(
