@@ -112,7 +112,7 @@ def analyze_bag(
     ------
     AnalyzeError
         No image topic, no camera (neither CameraInfo in the bag nor ``calibration``), or
-        ``out_dir/markers`` already exists.
+        ``out_dir`` is a file or a directory that is not empty.
     """
     from fiducial_detector.detect import detect
     from pose_estimator.estimate import estimate
@@ -122,6 +122,12 @@ def analyze_bag(
     markers_path = out_dir / "markers"
     if markers_path.exists():
         raise AnalyzeError(f"{markers_path} exists; choose an empty output directory")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise AnalyzeError(f"output {out_dir} is a file, not a directory")
+    if out_dir.is_dir() and any(out_dir.iterdir()):
+        # A report tree written over another report (a compare --out directory, an earlier
+        # analysis) would mix the two and overwrite what the user kept.
+        raise AnalyzeError(f"output directory {out_dir} is not empty; choose an empty one")
     session = Session(session_config or SessionConfig(), compare=comparer or Comparer())
     result = AnalysisResult()
     with bagio.open_bag(bag_path) as bag:
@@ -134,6 +140,15 @@ def analyze_bag(
         active_topic = _pick_hall(bag, run_active_topic, BOOL, "/hall/run_active")
         id_topic = _pick_hall(bag, run_id_topic, STRING, "/hall/run_id")
         cap_topic = _pick_hall(bag, capture_topic, EMPTY, "/armourcam/capture_baseline")
+        if active_topic is None:
+            # Without the hall's run state no run starts or ends: the baseline is taken and
+            # nothing is compared, and a report of no runs must say why.
+            found = bag.topics_of_type(BOOL)
+            which = f"several: {', '.join(found)}" if found else "none"
+            result.notices.append(
+                f"warn: no run-state topic ({BOOL}; {which}) in the bag, so no wave run can be "
+                "measured; name one with --run-active-topic"
+            )
         result.topics = {
             "image": img_topic,
             "camera_info": cam_topic or "",

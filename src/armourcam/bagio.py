@@ -624,6 +624,12 @@ class Bag:
                 self._ros1 = True
                 self._open_recovery([self.path], err)
                 return
+            if self.path.is_file() and _starts_with(self.path, _MCAP_MAGIC):
+                # Readers pick the format by the name: an MCAP file named .bag is read as ROS 1.
+                raise BagError(
+                    f"{self.path}: an MCAP file named {self.path.suffix or 'without a suffix'}; "
+                    "rename it to end in .mcap"
+                ) from err
             raise BagError(f"{self.path}: cannot open bag: {err}") from err
         self._reader = reader
         self._typestore = reader.typestore
@@ -919,8 +925,12 @@ class Bag:
 
 
 def _is_ros1(path: Path) -> bool:
+    return _starts_with(path, _ROS1_MAGIC)
+
+
+def _starts_with(path: Path, magic: bytes) -> bool:
     with path.open("rb") as fh:
-        return fh.read(len(_ROS1_MAGIC)) == _ROS1_MAGIC
+        return fh.read(len(magic)) == magic
 
 
 def _is_latched(conn: Any) -> bool:

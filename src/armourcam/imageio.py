@@ -71,6 +71,9 @@ def read_image(path: str | Path) -> NDArray[np.generic]:
     """
     name = str(path)
     try:
+        if Path(path).exists() and not Path(path).is_file() and not Path(path).is_dir():
+            # A device or a pipe (/dev/zero) would be read without end.
+            raise ImageReadError(f"{name}: not a regular file (a device or a pipe)")
         data = Path(path).read_bytes()
     except FileNotFoundError:
         raise ImageReadError(f"{name}: no such file") from None

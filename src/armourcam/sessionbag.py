@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 
 from armourcam.field import Field, FieldState, make_field
 from armourcam.render import Target, render
+from displacement_matcher.atomic import make_directory
 from displacement_matcher.rigid import across_line_of_sight
 from pose_estimator.camera import CameraModel
 
@@ -222,7 +223,7 @@ def replace_session_bag(path: Path, spec: SessionSpec | None = None) -> dict[str
     """:func:`write_session_bag`, replacing a bag already at ``path`` only once the new one and
     its ground truth are complete: they are rendered in a hidden directory beside it and moved
     into place, so a failure or an interrupt (a full disk, Ctrl-C) leaves the old bag whole."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_directory(path.parent)
     work = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
     old = work / "replaced"
     try:

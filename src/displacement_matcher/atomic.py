@@ -13,13 +13,53 @@ from __future__ import annotations
 import os
 import stat
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 
 
 def write_atomic(path: str | Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically, creating its directory; returns the path."""
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
+    (target,) = write_atomic_set({Path(path): data})
+    return target
+
+
+def write_atomic_set(files: Mapping[Path, bytes]) -> list[Path]:
+    """Write several files so that a failure leaves every one of them as it was.
+
+    Each file's data first goes to disk under a temporary name beside it (where a full disk or
+    an unwritable directory fails, before any target is touched); only once all are written do
+    they replace their targets, by renames, which need no space. So a report directory never
+    mixes a new ``report.json`` with an old ``overlay.png``. Returns the paths, in order.
+    """
+    written: list[tuple[str, Path]] = []
+    try:
+        for path, data in files.items():
+            target = Path(path)
+            make_directory(target.parent)
+            written.append((_written_beside(target, data), target))
+        for tmp, target in written:
+            os.replace(tmp, target)
+    except BaseException:
+        for tmp, _ in written:
+            Path(tmp).unlink(missing_ok=True)
+        raise
+    return [target for _, target in written]
+
+
+def make_directory(path: Path) -> None:
+    """Create the directory ``path`` and its parents where missing; one in the way that is a
+    file is named as such (``mkdir`` says only "File exists")."""
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise NotADirectoryError(f"{p} is a file, not a directory")
+            break
+    path.mkdir(parents=True, exist_ok=True)
+
+
+def _written_beside(target: Path, data: bytes) -> str:
+    """``data`` flushed to disk in a new temporary file beside ``target``, with the target's
+    permissions (or an ordinary new file's); returns its path."""
     try:
         mode = stat.S_IMODE(target.stat().st_mode)
     except FileNotFoundError:
@@ -31,11 +71,10 @@ def write_atomic(path: str | Path, data: bytes) -> Path:
             fh.flush()
             os.fchmod(fh.fileno(), mode)
             os.fsync(fh.fileno())
-        os.replace(tmp, target)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    return target
+    return tmp
 
 
 def _umask() -> int:

@@ -28,8 +28,10 @@ Columns are only ever appended, so scripts that index them by position keep work
   few bytes a row; as ``#`` comment lines above the header they would break the header row of
   every reader above, and be lost the moment rows are sorted, filtered or pasted elsewhere.
 
-Every file is written atomically (a temporary file in the same directory, then ``os.replace``), so
-a reader never sees half a report and a crash never leaves one behind. :func:`write_report_files`
+Every file is written atomically (a temporary file in the same directory, then ``os.replace``),
+and the files of one report as a set (all on disk under temporary names before any replaces its
+target), so a reader never sees half a report or one that mixes two comparisons, and a crash or a
+full disk never leaves one behind. :func:`write_report_files`
 writes the whole set from a report mapping; ``armourcam compare``, ``armourcam demo`` and
 ``armourcam analyze`` all write through it, so their report directories hold the same files.
 """
@@ -50,7 +52,7 @@ from numpy.typing import NDArray
 
 from pose_estimator.camera import CameraModel
 
-from .atomic import write_atomic
+from .atomic import write_atomic_set
 from .errors import MatcherError
 from .types import MATCH_LABELS, DamageSummary, MatchResult, UnitMotion
 
@@ -494,7 +496,8 @@ def write_report_files(
     after_image: NDArray[np.generic] | None = None,
 ) -> dict[str, Path]:
     """Write ``report.json``, ``fiducials.csv``, ``units.csv``, ``plot.png`` and, with a camera,
-    ``overlay.png`` of a :func:`report_dict` mapping into ``out_dir``, each atomically.
+    ``overlay.png`` of a :func:`report_dict` mapping into ``out_dir``, as one atomic set
+    (:func:`.atomic.write_atomic_set`).
 
     The one writer of a report directory (``compare --out``, each run of ``demo`` and
     ``analyze``): files and figures are drawn from the mapping alone, so a report read back from
@@ -519,14 +522,18 @@ def write_report_files(
         camera).
     """
     out = Path(out_dir)
-    paths = {
-        "json": write_atomic(out / "report.json", (json.dumps(report, indent=1) + "\n").encode()),
-        "fiducials_csv": write_atomic(out / "fiducials.csv", fiducials_csv(report)),
-        "units_csv": write_atomic(out / "units.csv", units_csv(report)),
-        "plot": write_atomic(out / "plot.png", _png(magnitude_plot_from_report(report))),
+    # Everything is drawn first, then written as one set: a failure (a figure, a full disk)
+    # leaves the directory's earlier report whole, never half old and half new.
+    files = {
+        "json": (out / "report.json", (json.dumps(report, indent=1) + "\n").encode()),
+        "fiducials_csv": (out / "fiducials.csv", fiducials_csv(report)),
+        "units_csv": (out / "units.csv", units_csv(report)),
+        "plot": (out / "plot.png", _png(magnitude_plot_from_report(report))),
     }
     if camera is not None:
-        paths["overlay"] = write_atomic(
-            out / "overlay.png", _png(overlay_from_report(report, camera, after_image))
+        files["overlay"] = (
+            out / "overlay.png",
+            _png(overlay_from_report(report, camera, after_image)),
         )
-    return paths
+    write_atomic_set(dict(files.values()))
+    return {name: path for name, (path, _) in files.items()}

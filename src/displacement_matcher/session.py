@@ -683,7 +683,7 @@ class Session:
         if self._unsaved:
             self._flush_unsaved(None, len(self._unsaved))
         if self.baseline is None and self._window.frames and self.phase != Phase.SETTLING:
-            events += self._baseline_from_window("auto", partial=True)
+            events += self._baseline_from_window("auto", partial=True, cause="input ended")
         if self.phase == Phase.SETTLING:
             events += self._finish_run(force=True)
             self._deferred_start = None
@@ -739,10 +739,14 @@ class Session:
     def _last_frames(self, n: int) -> list[tuple[tuple[FiducialPose, ...], float]]:
         return list(self._window.frames)[-n:]
 
-    def _baseline_from_window(self, reason: str, *, partial: bool) -> list[Event]:
+    def _baseline_from_window(
+        self, reason: str, *, partial: bool, cause: str = "run started"
+    ) -> list[Event]:
+        """The baseline from the frames seen so far, taken early (``partial``) because of
+        ``cause`` (a run started, the input ended)."""
         frames = self._last_frames(self.config.baseline_frames)
         if not frames:
-            return [Notice("warn", "run started without a baseline and no frames to take one")]
+            return [Notice("warn", f"{cause} without a baseline and no frames to take one")]
         # Fewer frames than asked that all agree are a still scene seen briefly (a short wait
         # before the run), not an unsettled one.
         agreed = len(frames) > 1 and self._settled(len(frames))
@@ -759,13 +763,14 @@ class Session:
             events.append(
                 Notice(
                     "info",
-                    f"baseline from the {len(frames)} agreeing frames before the run "
+                    f"baseline from the {len(frames)} agreeing frames before the "
+                    f"{'run' if cause == 'run started' else 'end'} "
                     f"(baseline_frames {self.config.baseline_frames})",
                 )
             )
         elif partial:
             events.append(
-                Notice("warn", f"run started before the baseline settled: fused {len(frames)}")
+                Notice("warn", f"{cause} before the baseline settled: fused {len(frames)}")
             )
         return events
 

@@ -326,3 +326,48 @@ def test_make_bags_keeps_the_old_bag_until_the_new_one_is_complete(
     )
     with bagio.open_bag(bag) as b:
         assert b.topics[sessionbag.COMPRESSED_TOPIC].count == 2 + 3 + 2
+
+
+def test_analyze_refuses_a_directory_holding_another_report(tmp_path: Path) -> None:
+    """A compare --out directory (or any non-empty one) is refused before anything is read:
+    a report tree written over it would overwrite its report.json and mix the two."""
+    kept = tmp_path / "report.json"
+    kept.write_text('{"kept": true}\n')
+    with pytest.raises(AnalyzeError, match="is not empty"):
+        analyze_bag(BAG, tmp_path)
+    assert kept.read_text() == '{"kept": true}\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json"]
+
+
+@pytest.mark.parametrize("command", ["analyze", "compare"])
+def test_an_empty_output_path_is_a_usage_error(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    command: str,
+) -> None:
+    """``--out ""`` (an unset shell variable) is refused, not taken for the working directory,
+    whose files the outputs would overwrite."""
+    from armourcam.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    args = {
+        "analyze": ["analyze", str(BAG)],
+        "compare": ["compare", "a.png", "--after", "b.png", "--camera", "c.yaml"],
+    }[command]
+    with pytest.raises(SystemExit) as info:
+        main([*args, "--out", ""])
+    assert info.value.code == 2
+    assert "--out: an empty path" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_bag_without_the_hall_topics_says_why_no_run_was_measured(tmp_path: Path) -> None:
+    """The real camera bag has no run-state topic: the analysis says so (and which option names
+    one), and its baseline is not said to have been cut short by a run that never started."""
+    result = analyze_bag(FIXTURE, tmp_path / "out", session_config=SessionConfig(baseline_frames=1))
+    assert result.runs == []
+    (warn,) = [n for n in result.notices if "run-state topic" in n]
+    assert warn.startswith("warn: no run-state topic (std_msgs/msg/Bool; none) in the bag")
+    assert "--run-active-topic" in warn
+    assert not any("run started" in n for n in result.notices)

@@ -419,6 +419,11 @@ def test_errors(tmp_path: Path) -> None:
     with pytest.raises(BagError, match="cannot open bag"):
         bagio.open_bag(tmp_path / "text.bag")
     _image_bag(tmp_path / "bag", 1, np.random.default_rng(0))
+    # An MCAP file copied out of its bag directory under a ROS 1 name.
+    (mcap,) = (tmp_path / "bag").glob("*.mcap")
+    (tmp_path / "copied.bag").write_bytes(mcap.read_bytes())
+    with pytest.raises(BagError, match=r"copied\.bag: an MCAP file named \.bag; rename it"):
+        bagio.open_bag(tmp_path / "copied.bag")
     with pytest.raises(BagError, match=r"cannot create bag .* exists"):
         bagio.BagWriter(tmp_path / "bag")
     with bagio.BagWriter(tmp_path / "other") as w:

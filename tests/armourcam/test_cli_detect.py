@@ -141,6 +141,9 @@ def test_read_image_keeps_depth_and_channels(tmp_path: Path, scene_image: np.nda
     assert im.dtype == np.uint16 and im.shape == scene_image.shape
     with pytest.raises(ImageReadError, match="is a directory"):
         read_image(tmp_path)
+    # A device is refused before it is read (/dev/zero has no end).
+    with pytest.raises(ImageReadError, match=r"/dev/zero: not a regular file"):
+        read_image("/dev/zero")
 
 
 def test_damaged_data_inside_a_file_is_an_error_naming_it(  # type: ignore[no-untyped-def]

@@ -13,12 +13,12 @@ import pytest
 from matcher_synth import make_pose
 
 from displacement_matcher import match
+from displacement_matcher.atomic import write_atomic
 from displacement_matcher.damage import assess, thresholds
 from displacement_matcher.report import (
     fiducials_csv,
     report_dict,
     units_csv,
-    write_atomic,
     write_report,
 )
 from displacement_matcher.units import unit_motions
@@ -84,6 +84,32 @@ def test_write_atomic_replaces_and_cleans_up(
         write_atomic(target, b"new")
     assert target.read_bytes() == b"old"
     assert os.listdir(tmp_path) == ["report.json"]
+
+
+def test_a_report_that_fails_half_written_leaves_the_earlier_one_whole(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The disk fills while the fourth of a report's five files goes to disk: the directory
+    still holds the earlier report, every file of it (not a new report.json beside an old
+    overlay), and no temporary file."""
+    r, units, summary, _ = _scene()
+    cam = CameraModel.ideal(640, 480, 600.0)
+    write_report(tmp_path, r, units, summary, camera=cam, after_image=None)
+    before = {p: p.read_bytes() for p in tmp_path.iterdir()}
+    assert len(before) == 5
+    flushed = []
+
+    def fills_up(fd: int) -> None:
+        flushed.append(fd)
+        if len(flushed) == 4:
+            raise OSError("No space left on device")
+
+    monkeypatch.setattr(os, "fsync", fills_up)
+    r2, units2, summary2, _ = _scene()
+    units2, summary2 = assess(units2, thresholds(2.0), section_width_mm=100.0)
+    with pytest.raises(OSError, match="No space left"):
+        write_report(tmp_path, r2, units2, summary2, camera=cam, after_image=None)
+    assert {p: p.read_bytes() for p in tmp_path.iterdir()} == before
 
 
 def test_report_of_empty_and_rejected_inputs(tmp_path: Path) -> None:
@@ -199,3 +225,12 @@ def test_report_files_from_a_stored_report_match_the_comparisons(tmp_path: Path)
     np.testing.assert_array_equal(overlay, overlay_image(r, cam, after))
     np.testing.assert_array_equal(cv2.imread(str(again["plot"])), magnitude_plot(r, summary))
     assert write_report_files(tmp_path / "c", stored).keys() == first.keys() - {"overlay"}
+
+
+def test_a_report_directory_that_is_a_file_is_named(tmp_path: Path) -> None:
+    """``--out`` naming a file: the error says it is a file, not only "File exists"."""
+    r, units, summary, _ = _scene()
+    (tmp_path / "notes.txt").write_text("kept\n")
+    with pytest.raises(NotADirectoryError, match=r"notes\.txt is a file, not a directory"):
+        write_report(tmp_path / "notes.txt" / "run1", r, units, summary)
+    assert (tmp_path / "notes.txt").read_text() == "kept\n"

@@ -7,6 +7,7 @@ only parses its arguments and calls the cores.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def add_ros_args(parser: argparse.ArgumentParser, help_text: str) -> None:
@@ -15,3 +16,11 @@ def add_ros_args(parser: argparse.ArgumentParser, help_text: str) -> None:
     parser.add_argument(
         "--ros-args", nargs=argparse.REMAINDER, default=[], metavar="ARG", help=help_text
     )
+
+
+def output_path(text: str) -> Path:
+    """An ``--out`` value: a path, not an empty string (an unset shell variable), which
+    ``Path`` would take for the working directory and write the outputs over what is there."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; give the output's name")
+    return Path(text)

@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from . import output_path
+
 
 def register(subparsers: Any) -> None:
     """Add the ``analyze`` subcommand."""
@@ -23,7 +25,7 @@ def register(subparsers: Any) -> None:
         ),
     )
     p.add_argument("bag", type=Path, help="bag directory, .mcap file or ROS 1 .bag")
-    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--out", type=output_path, required=True, help="output directory")
     p.add_argument("--image-topic", help="Image or CompressedImage topic")
     p.add_argument("--camera-info-topic", help="CameraInfo topic")
     p.add_argument("--camera", type=Path, help="camera_calibration YAML instead of CameraInfo")

@@ -24,6 +24,7 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 from ..imageio import ImageReadError
+from . import output_path
 from .detect import add_decimate_option, read_for_camera
 
 if TYPE_CHECKING:
@@ -47,7 +48,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--after", nargs="+", required=True, metavar="AFTER", help="after image(s)")
     p.add_argument("--camera", required=True, help="camera_calibration YAML file")
     p.add_argument("--diameter-mm", type=float, default=7.1, help="printed diameter (7.1)")
-    p.add_argument("--out", required=True, help="output directory of the report")
+    p.add_argument("--out", type=output_path, required=True, help="output directory of the report")
     p.add_argument("--units", help="unit map YAML (explicit units or a repeated template)")
     p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
     p.add_argument("--design", choices=("any", "ring", "dot"), default="any")

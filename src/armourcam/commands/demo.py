@@ -11,6 +11,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from . import output_path
+
 REPO = Path(__file__).resolve().parents[3]
 BUNDLED = REPO / "bags" / "session_small"
 
@@ -27,7 +29,9 @@ def register(subparsers: Any) -> None:
             "prints the per-run summary with the ground truth beside it."
         ),
     )
-    p.add_argument("--out", type=Path, default=Path("out"), help="output directory (default out)")
+    p.add_argument(
+        "--out", type=output_path, default=Path("out"), help="output directory (default out)"
+    )
     p.add_argument("--bag", type=Path, default=BUNDLED, help="session bag (default: bundled)")
     p.add_argument(
         "--timeout", type=float, default=300.0, help="give up after this many seconds (300)"

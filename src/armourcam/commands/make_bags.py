@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from . import output_path
+
 SMALL_NAME = "session_small"
 LARGE_NAME = "session_6mp"
 
@@ -23,7 +25,7 @@ def register(subparsers: Any) -> None:
             f"OUT/large/{LARGE_NAME} (3008x2000 mono8, git-ignored)."
         ),
     )
-    p.add_argument("--out", type=Path, default=Path("bags"), help="directory (default bags)")
+    p.add_argument("--out", type=output_path, default=Path("bags"), help="directory (default bags)")
     p.add_argument("--large", action="store_true", help="also write the 6 MP version")
     p.add_argument("--seed", type=_seed, default=9, help="field seed (default 9)")
     p.set_defaults(func=run)

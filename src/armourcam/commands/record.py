@@ -7,10 +7,9 @@ import argparse
 import signal
 import sys
 import threading
-from pathlib import Path
 from typing import Any
 
-from . import add_ros_args
+from . import add_ros_args, output_path
 
 #: The graph's default names: relative (resolved in the recorder's namespace, as the nodes'
 #: are in theirs, so ``--ros-args -r __ns:=/cell2`` records ``/cell2/armourcam/poses``) but
@@ -84,7 +83,7 @@ def register(subparsers: Any) -> None:
             "after it goes to rclpy."
         ),
     )
-    p.add_argument("--out", type=Path, required=True, help="bag directory to create")
+    p.add_argument("--out", type=output_path, required=True, help="bag directory to create")
     p.add_argument(
         "topics", nargs="*", help="topics to record (default: the graph's outputs and events)"
     )
