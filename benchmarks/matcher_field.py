@@ -13,8 +13,12 @@ Methods, each followed by the same unit grouping, unit motion and damage count:
 
 - ``armourcam``: :func:`displacement_matcher.units.match_units` (exact global matching, then
   unit-aware re-matching) with the field's unit template (positions and normals);
-- ``auto``: the same without a unit map: units grouped by the distances between codes learned
-  from the baseline (:func:`displacement_matcher.units.learn_pair_distances`);
+- ``auto``: the same without a unit map: the template learned from the baseline
+  (:func:`displacement_matcher.learned_template.learn_template`: the faces' positions and
+  normals from the units it shows whole, and the face it never shows as hidden);
+- ``pairs``: without a unit map, learning only the distances between codes
+  (:func:`displacement_matcher.units.learn_pair_distances`; ``auto`` before the template was
+  learned);
 - ``global``: :func:`displacement_matcher.match` alone (one exact global matching);
 - ``nearest``: each baseline fiducial takes the nearest same-code current one within the gate
   (not one-to-one);
@@ -47,8 +51,8 @@ the unit's centre moved >= 1 Dn.
 Run: ``.venv/bin/python -m benchmarks.matcher_field [--seeds 3] [--source noisy|e2e]
 [--image-fit] [--pose-cache DIR] [--methods armourcam auto ...]``. The last lines sum every
 method over the seeds. The thirty-seed figures of the README:
-``--source e2e --seeds 30 --pose-cache DIR --methods armourcam auto`` (about an hour to render and
-detect the first time, two minutes once the poses are cached).
+``--source e2e --seeds 30 --pose-cache DIR --methods armourcam auto pairs`` (about an hour to
+render and detect the first time, a few minutes once the poses are cached).
 """
 
 from __future__ import annotations
@@ -194,12 +198,12 @@ def evaluate(
     ``band_dn`` Dn of the threshold are listed apart (``near_units``) from the band's false
     positives and negatives (``fp_band``, ``fn_band``).
     """
-    # ``auto``: armourcam without a unit map (units grouped by the code distances learned from
-    # the baseline, :func:`displacement_matcher.units.learn_pair_distances`).
-    umap = None if method == "auto" else field.geometry.unit_map()
+    # ``auto`` and ``pairs``: armourcam without a unit map (the template learned from the
+    # baseline, or only the distances between its codes).
+    umap = None if method in ("auto", "pairs") else field.geometry.unit_map()
     t0 = time.perf_counter()
-    if method in ("armourcam", "auto"):
-        an = match_units(base, cur, unit_map=umap, gate_mm=GATE_MM)
+    if method in ("armourcam", "auto", "pairs"):
+        an = match_units(base, cur, unit_map=umap, gate_mm=GATE_MM, learn=method == "auto")
         result, units = an.result, an.units
     else:
         if method == "global":
@@ -501,7 +505,7 @@ def main() -> None:
         )
 
 
-METHODS = ("armourcam", "auto", "global", "nearest", "icp")
+METHODS = ("armourcam", "auto", "pairs", "global", "nearest", "icp")
 _TOTALS = ("still", "fp", "fn", "true", "band_fp", "band_fn", "near_wrong", "near_n")
 
 

@@ -118,6 +118,11 @@ class Assessment:
         Images fused for the baseline and the current state.
     unit_map_problems : tuple of UnitMapProblem
         Mapped units whose baseline fiducials do not fit on one unit (:func:`check_unit_map`).
+    camera_motion : FrameAgreement or None
+        The camera's motion between the states, when the scene shows one (:func:`camera_motion`).
+    learned_template : UnitSpec or None
+        The unit template learned from the baseline when no unit map was given
+        (:func:`.learned_template.learn_template`).
     """
 
     result: MatchResult
@@ -127,6 +132,7 @@ class Assessment:
     n_frames: tuple[int, int] = (1, 1)
     unit_map_problems: tuple[UnitMapProblem, ...] = ()
     camera_motion: FrameAgreement | None = None
+    learned_template: UnitSpec | None = None
 
     @property
     def warnings(self) -> tuple[str, ...]:
@@ -291,6 +297,7 @@ def compare_poses(
         analysis.unassigned,
         unit_map_problems=problems,
         camera_motion=camera_motion(baseline, current),
+        learned_template=analysis.learned_template,
     )
 
 

@@ -151,7 +151,13 @@ class Comparer:
             unit_map=self.unit_map,
             section_width_mm=self.section_width_mm,
         )
-        report = report_dict(a.result, a.units, a.summary, unassigned=a.unassigned)
+        report = report_dict(
+            a.result,
+            a.units,
+            a.summary,
+            unassigned=a.unassigned,
+            learned_template=a.learned_template,
+        )
         # What the comparison doubts (a camera moved between the two states, a unit map that does
         # not fit), as compare --json reports it.
         report["warnings"] = list(a.warnings)

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 from pose_estimator.types import FiducialPose
 
 from .errors import MatcherError
+from .learned_template import learn_template
 from .match import match
 from .rigid import across_line_of_sight, rigid_fit
 from .types import MatchResult, UnitMotion
@@ -108,12 +109,16 @@ class UnitAnalysis:
         Baseline indices that belong to no unit.
     passes : int
         Matching passes run (1 = no unit-aware refinement).
+    learned_template : UnitSpec or None
+        The template learned from the baseline when no unit map was given
+        (:func:`.learned_template.learn_template`), None otherwise or when none could be.
     """
 
     result: MatchResult
     units: tuple[UnitMotion, ...]
     unassigned: tuple[int, ...]
     passes: int
+    learned_template: UnitSpec | None = None
 
 
 def match_units(
@@ -128,6 +133,7 @@ def match_units(
     rigid_gate_mm: float = 8.0,
     translation_gate_mm: float = 15.0,
     depth_slack_mm: float = 100.0,
+    learn: bool = True,
     **match_kw: Any,
 ) -> UnitAnalysis:
     """Match fiducials, find units and their motion, then re-match knowing how units moved.
@@ -173,6 +179,12 @@ def match_units(
         Depth discrepancy of a predicted fiducial that is not counted (see
         :func:`displacement_matcher.match`): identity follows the image, where a monocular pose
         is precise, while the unit motion (:func:`unit_motions`) screens out the depth outliers.
+    learn : bool
+        Without a unit map, learn the template from the baseline's units
+        (:func:`.learned_template.learn_template`: positions and normals of the faces the
+        baseline shows together) and match as with a template; where none can be learned, or
+        with ``learn=False``, units are grouped by the distances between codes learned from the
+        baseline (:func:`.units.learn_pair_distances`).
     **match_kw
         Passed to :func:`displacement_matcher.match` (``gate_mm``, ``code_penalty_mm``...).
     """
@@ -184,6 +196,13 @@ def match_units(
         match_kw.setdefault("identity_codes", frozenset(c for u in unit_map.units for c in u.codes))
     result = match(baseline, current, **match_kw)
     span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
+    learned_template = None
+    if unit_map is None and learn:
+        # The paper's case, every unit carrying the same codes with no map given: the units the
+        # baseline shows whole say where the codes sit on a unit.
+        learned_template = learn_template(result.baseline, span, other_state=result.current)
+        if learned_template is not None:
+            unit_map = UnitMap((), learned_template, span)
     template = unit_map.template if unit_map is not None else None
     explicit = unit_map is not None and bool(unit_map.units)
     # Without template positions, the distances between a unit's codes are learned from the
@@ -383,7 +402,7 @@ def match_units(
         if again is not None:
             break
         history.append((inputs, frozenset(pair_of.items())))
-    return UnitAnalysis(result, units, unassigned, passes)
+    return UnitAnalysis(result, units, unassigned, passes, learned_template)
 
 
 def assign_unit_groups(

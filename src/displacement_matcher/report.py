@@ -2,11 +2,12 @@
 
 The JSON has the keys of ``armourcam compare --json``: ``fiducials`` (label, unit, codes,
 positions and displacement per entry), ``units`` (id, translation, rotation, status, reference
-point), ``summary`` (damage counts with their thresholds), plus ``rejected`` poses and the
-matching ``params``. The overlay draws the displacement vectors on the after image the way the
-paper's Figure 8 does: green for same-code pairs, red for cross-code pairs; vanished fiducials are
-marked with a yellow circle at their baseline position, appeared ones with a blue one. Positions
-are camera frame, mm; pixels ``(u, v)`` with pixel centres at integer coordinates.
+point), ``summary`` (damage counts with their thresholds), plus ``rejected`` poses, the
+matching ``params`` and, when no unit map was given, the ``template`` learned from the baseline
+(in the unit map's layout). The overlay draws the displacement vectors on the after image the way
+the paper's Figure 8 does: green for same-code pairs, red for cross-code pairs; vanished fiducials
+are marked with a yellow circle at their baseline position, appeared ones with a blue one.
+Positions are camera frame, mm; pixels ``(u, v)`` with pixel centres at integer coordinates.
 
 The CSVs are plain rectangular tables (one header row, no comment lines), so a spreadsheet,
 ``csv.DictReader`` or ``pandas.read_csv`` opens them without options, and rows of several runs
@@ -55,6 +56,7 @@ from pose_estimator.camera import CameraModel
 from .atomic import write_atomic_set
 from .errors import MatcherError
 from .types import MATCH_LABELS, DamageSummary, MatchResult, UnitMotion
+from .units import UnitSpec
 
 GREEN = (60, 200, 60)  # BGR
 RED = (40, 40, 230)
@@ -78,8 +80,11 @@ def report_dict(
     summary: DamageSummary | None = None,
     *,
     unassigned: Sequence[int] = (),
+    learned_template: UnitSpec | None = None,
 ) -> dict[str, Any]:
-    """The report as a JSON-ready mapping (see the module docstring)."""
+    """The report as a JSON-ready mapping (see the module docstring); ``learned_template``, the
+    unit template learned from the baseline without a unit map, is reported under
+    ``template``."""
     unit_of = _unit_of_fiducial(units)
     fids = []
     for d in result.displacements:
@@ -155,6 +160,8 @@ def report_dict(
         summ["displaced_units"] = None
     summ["unassigned_fiducials"] = list(unassigned)
     out["summary"] = summ
+    if learned_template is not None:
+        out["template"] = template_dict(learned_template)
     out["rejected"] = [
         {"side": r.side, "index": r.index, "code": r.code, "reason": r.reason}
         for r in result.rejected
@@ -168,6 +175,18 @@ def report_dict(
         "total_cost_mm": _num(result.total_cost),
     }
     return out
+
+
+def template_dict(template: UnitSpec) -> dict[str, Any]:
+    """A learned unit template as a JSON-ready mapping, in the unit map's YAML layout
+    (:mod:`.units`): a lab can keep it as the ``template`` of a unit map."""
+    return {
+        "source": "learned from the baseline",
+        "codes": [int(c) for c in template.codes],
+        "positions_mm": {str(c): _vec(p) for c, p in sorted(template.positions_mm.items())},
+        "normals": {str(c): _vec(n) for c, n in sorted(template.normals.items())},
+        "hidden": sorted(int(c) for c in template.hidden),
+    }
 
 
 def _unit_of_fiducial(

@@ -22,6 +22,7 @@ Unit map YAML (lengths in mm, positions in the unit's own frame)::
       positions_mm: {3: [9.5, 15.2, 0], 17: [9.5, -15.2, 0],
                      29: [-9.5, 0, 15.2], 41: [-9.5, 0, -15.2]}
       normals: {3: [0, 1, 1], 17: [0, -1, 1], 29: [0, 0, 1], 41: [0, 0, -1]}  # optional
+      hidden: [41]          # optional: faces the units' resting pose hides (seen: overturned)
       span_mm: 35           # optional: largest distance between two fiducials of a unit
 
 Per unit the motion is a weighted rigid fit (:mod:`.rigid`: Kabsch/Umeyama without scale, or
@@ -88,12 +89,17 @@ class UnitSpec:
         Fiducial centres on the unit (unit frame, mm), for the codes that have one.
     normals : dict of int to (3,) ndarray
         Unit normals of the printed faces on the unit (unit frame), for the codes that have one.
+    hidden : frozenset of int
+        Codes whose faces the units' resting pose hides (a learned template's faces that no
+        baseline unit showed, :mod:`.learned_template`): such a face now seen points away from
+        every face with a normal, so showing it means the unit turned over.
     """
 
     unit: str
     codes: tuple[int, ...]
     positions_mm: dict[int, NDArray[np.float64]]
     normals: dict[int, NDArray[np.float64]] = field(default_factory=dict)
+    hidden: frozenset[int] = frozenset()
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -133,7 +139,7 @@ def _codes(value: Any, where: str) -> tuple[int, ...]:
 def _spec(name: str, doc: Any) -> UnitSpec:
     if not isinstance(doc, Mapping):
         raise MatcherError(f"unit {name!r}: expected a mapping with 'codes', got {doc!r}")
-    unknown = set(doc) - {"codes", "positions_mm", "normals", "span_mm"}
+    unknown = set(doc) - {"codes", "positions_mm", "normals", "hidden", "span_mm"}
     if unknown:
         raise MatcherError(f"unit {name!r}: unknown keys {sorted(map(str, unknown))}")
     codes = _codes(doc.get("codes"), f"unit {name!r}")
@@ -168,7 +174,13 @@ def _spec(name: str, doc: Any) -> UnitSpec:
         if not (np.isfinite(length) and length > 0):
             raise MatcherError(f"unit {name!r}: normal of code {code} is zero or not finite")
         normals[code] = v / length
-    return UnitSpec(str(name), codes, positions, normals)
+    hidden: tuple[int, ...] = ()
+    if doc.get("hidden"):
+        hidden = _codes(doc["hidden"], f"unit {name!r} hidden")
+        stray = sorted(set(hidden) - set(codes))
+        if stray:
+            raise MatcherError(f"unit {name!r}: hidden codes {stray} not in {codes}")
+    return UnitSpec(str(name), codes, positions, normals, frozenset(hidden))
 
 
 def parse_unit_map(doc: Any) -> UnitMap:
@@ -920,7 +932,7 @@ def unit_motions(
     shown: dict[int, int] = {}
     if owner_codes is None and template is not None and (normals or template.positions_mm):
         shown = still_in_place(base, cur) if in_place is None else in_place
-    if owner_codes is None and normals:
+    if owner_codes is None and template is not None and (normals or template.hidden):
         # Faces opposite to those a unit showed first: they can only be an overturned unit's.
         for d, n in _overturn_evidence(
             appeared,
@@ -929,7 +941,7 @@ def unit_motions(
             cur,
             cur_of,
             has_same,
-            normals,
+            template,
             result.params.gate_mm,
             shown,
         ):
@@ -976,10 +988,10 @@ def unit_motions(
         best, best_d = None, span
         for n, (_, ix) in enumerate(unit_list):
             codes_now = {int(cur[j].code) for j in cur_of[n]}
-            if code in codes_now or _opposed(normals, code, codes_now):
+            if code in codes_now or _opposed(template, code, codes_now):
                 # A rigid unit cannot show a face and the one opposite it at once.
                 continue
-            if not cur_of[n] and _opposed(normals, code, {int(base[i].code) for i in ix}):
+            if not cur_of[n] and _opposed(template, code, {int(base[i].code) for i in ix}):
                 # Turned over: only as the evidence above weighed it.
                 continue
             ref = [cur[j].position_mm for j in cur_of[n]] or [base[i].position_mm for i in ix]
@@ -1114,11 +1126,20 @@ def precise_depth(poses: Sequence[FiducialPose]) -> NDArray[np.bool_]:
     return finite & (sd <= PRECISE_DEPTH_RATIO * float(np.median(sd[finite])))
 
 
-def _opposed(normals: Mapping[int, NDArray[np.float64]], code: int, others: Any) -> bool:
-    """Whether the template face of ``code`` points away from that of any code in ``others``."""
+def _opposed(template: UnitSpec | None, code: int, others: Any) -> bool:
+    """Whether the template face of ``code`` points away from that of any code in ``others``:
+    by their normals, or a face the template lists as hidden against one with a normal."""
+    if template is None:
+        return False
+    normals, hidden = template.normals, template.hidden
+    if code in hidden:
+        return any(b in normals and b not in hidden for b in others)
     if code not in normals:
         return False
-    return any(b in normals and float(normals[code] @ normals[b]) < OPPOSED_DOT for b in others)
+    return any(
+        b in hidden or (b in normals and float(normals[code] @ normals[b]) < OPPOSED_DOT)
+        for b in others
+    )
 
 
 def _overturn_evidence(
@@ -1128,7 +1149,7 @@ def _overturn_evidence(
     cur: tuple[FiducialPose, ...],
     cur_of: Mapping[int, list[int]],
     has_same: set[int],
-    normals: Mapping[int, NDArray[np.float64]],
+    template: UnitSpec,
     gate_mm: float,
     shown: Mapping[int, int],
 ) -> list[tuple[Any, int]]:
@@ -1147,7 +1168,8 @@ def _overturn_evidence(
     list of (Displacement, int)
         Appeared entries with the index (into ``unit_list``) of the unit each joins.
     """
-    rows = [d for d in appeared if d.code_after is not None and int(d.code_after) in normals]
+    faces = set(template.normals) | template.hidden
+    rows = [d for d in appeared if d.code_after is not None and int(d.code_after) in faces]
     if not rows:
         return []
     lone_cross = {j for n, js in cur_of.items() if n not in has_same and len(js) == 1 for j in js}
@@ -1169,9 +1191,9 @@ def _overturn_evidence(
             # A lone cross-code partner is no evidence of what the unit shows (mostly a
             # stranger, see _motion_of_unit): it does not rule the face out.
             now = {int(cur[j].code) for j in cur_of[n] if j not in lone_cross}
-            if code in now or _opposed(normals, code, now):
+            if code in now or _opposed(template, code, now):
                 continue
-            if not _opposed(normals, code, {int(base[i].code) for i in ix}):
+            if not _opposed(template, code, {int(base[i].code) for i in ix}):
                 continue
             pos = np.array([base[i].position_mm for i in ix], dtype=np.float64)
             dist = float(np.min(np.linalg.norm(pos - d.after_mm, axis=1)))
@@ -1386,7 +1408,12 @@ def _motion_of_unit(
     turned_over = bool(ix) and not same and bool(new_codes)
     if turned_over and normals:
         old_codes = [c for c in codes if c in normals]
-        turned_over = any(_opposed(normals, a, old_codes) for a in new_codes)
+        # A face the template knows nothing of (neither normal nor hidden: a learned template
+        # knows only the faces the baseline showed) is weighed as without normals.
+        known = set(normals) | (template.hidden if template is not None else frozenset())
+        turned_over = any(_opposed(template, a, old_codes) for a in new_codes) or (
+            len(ix) >= 2 and any(a not in known for a in new_codes)
+        )
     elif turned_over:
         turned_over = len(ix) >= 2
     if len(use) == 1 and not same and not turned_over:

@@ -206,12 +206,20 @@ def test_explicit_unit_map_and_unknown_codes(tmp_path: pytest.TempPathFactory) -
         ({"template": {"codes": [1, 2], "span_mm": "abc"}}, "span_mm must be a length"),
         ({"template": {"codes": [1, 2], "span_mm": float("nan")}}, "positive length"),
         ({"template": {"codes": [1, 2], "span_mm": -5}}, "positive length"),
+        ({"template": {"codes": [1, 2], "hidden": [3]}}, r"hidden codes \[3\] not in"),
+        ({"template": {"codes": [1, 2], "hidden": "2"}}, "codes must be a non-empty list"),
     ],
 )
 def test_bad_unit_maps_raise_clear_errors(doc: object, message: str) -> None:
     """Malformed unit maps name what is wrong."""
     with pytest.raises(MatcherError, match=message):
         parse_unit_map(doc)
+
+
+def test_template_hidden_faces_are_read() -> None:
+    """A template's ``hidden`` faces (what a learned template's report lists) are read back."""
+    umap = parse_unit_map({"template": {"codes": [3, 17, 29, 41], "hidden": [41]}})
+    assert umap.template is not None and umap.template.hidden == {41}
 
 
 def test_unreadable_unit_map_file(tmp_path: pytest.TempPathFactory) -> None:

@@ -215,7 +215,13 @@ def run(args: argparse.Namespace) -> int:
         "warnings": [*warnings, *cmp.warnings],
     }
     # One report mapping for the files and for --json.
-    rep = report_dict(cmp.result, cmp.units, cmp.summary, unassigned=cmp.unassigned)
+    rep = report_dict(
+        cmp.result,
+        cmp.units,
+        cmp.summary,
+        unassigned=cmp.unassigned,
+        learned_template=cmp.learned_template,
+    )
     rep.update(extra)
     write_report_files(args.out, rep, camera=camera, after_image=after_imgs[states[1].consensus[0]])
     if args.json:
