@@ -29,6 +29,7 @@ from pose_estimator.types import FiducialPose
 from .damage import assess
 from .match import DEFAULT_GATE_MM
 from .refine import match_units
+from .report import report_dict
 from .types import DamageSummary, DamageThresholds, MatchResult, UnitMotion
 from .units import DEFAULT_RIGID_TOL_MM, UnitMap, UnitSpec
 
@@ -133,6 +134,16 @@ class Assessment:
     unit_map_problems: tuple[UnitMapProblem, ...] = ()
     camera_motion: FrameAgreement | None = None
     learned_template: UnitSpec | None = None
+
+    def report(self) -> dict[str, Any]:
+        """The report mapping of this assessment (:func:`.report.report_dict`)."""
+        return report_dict(
+            self.result,
+            self.units,
+            self.summary,
+            unassigned=self.unassigned,
+            learned_template=self.learned_template,
+        )
 
     @property
     def warnings(self) -> tuple[str, ...]:

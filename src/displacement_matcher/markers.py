@@ -25,7 +25,6 @@ from pose_estimator.types import FiducialPose
 from .compare import compare_poses
 from .damage import DEFAULT_MOVED_MM, thresholds
 from .errors import MatcherError
-from .report import report_dict
 from .session import Comparison, MarkerSpec
 from .types import DamageThresholds, Displacement, MatchResult, UnitMotion
 from .units import UnitMap
@@ -151,13 +150,7 @@ class Comparer:
             unit_map=self.unit_map,
             section_width_mm=self.section_width_mm,
         )
-        report = report_dict(
-            a.result,
-            a.units,
-            a.summary,
-            unassigned=a.unassigned,
-            learned_template=a.learned_template,
-        )
+        report = a.report()
         # What the comparison doubts (a camera moved between the two states, a unit map that does
         # not fit), as compare --json reports it.
         report["warnings"] = list(a.warnings)

@@ -181,7 +181,7 @@ PARAMS = (
     Param(
         "unit_map_file",
         "",
-        "Unit map YAML (unit id -> codes [, positions]); empty: automatic grouping.",
+        "Unit map YAML (unit id -> codes [, positions]); empty: template learned from baseline.",
     ),
     Param(
         "frame_id",

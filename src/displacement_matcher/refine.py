@@ -43,9 +43,9 @@ from .units import (
     branch_fit,
     faces_shown_in_place,
     fits_template,
-    has_positions,
     learn_pair_distances,
     mirror_normals,
+    places_every_code,
     seen_in_place,
     still_in_place,
     template_pose,
@@ -205,11 +205,11 @@ def match_units(
             unit_map = UnitMap((), learned_template, span)
     template = unit_map.template if unit_map is not None else None
     explicit = unit_map is not None and bool(unit_map.units)
-    # Without template positions, the distances between a unit's codes are learned from the
+    # Where no template places them, the distances between a unit's codes are learned from the
     # baseline, for the baseline's and the current state's grouping alike.
     learned: dict[tuple[int, int], float] = (
         learn_pair_distances(result.baseline, span)
-        if not explicit and not has_positions(template)
+        if not explicit and not places_every_code(template)
         else {}
     )
     groups = assign_units(

@@ -255,10 +255,10 @@ def load_unit_map(path: str | Path) -> UnitMap:
         raise MatcherError(f"unit map {path}: {err}") from err
 
 
-def has_positions(template: UnitSpec | None) -> bool:
-    """Whether a template gives its codes' positions on the unit (else the distances between
-    codes are learned: :func:`learn_pair_distances`)."""
-    return template is not None and bool(template.positions_mm)
+def places_every_code(template: UnitSpec | None) -> bool:
+    """Whether a template gives every one of its codes a position on the unit (else the
+    distances between the codes it leaves unplaced are learned: :func:`learn_pair_distances`)."""
+    return template is not None and all(c in template.positions_mm for c in template.codes)
 
 
 #: Widths (mm) of the distance windows :func:`learn_pair_distances` tries, narrowest first: pose
@@ -344,9 +344,9 @@ def group_fiducials(
     the template's within ``tol_mm`` plus three standard deviations, and when it gives normals
     too, the rigid invariants of the two oriented fiducials (``n_i . n_j`` and each normal against
     the line between them) agree within ``normal_tol``. Fiducials whose code is not in
-    ``template.codes`` (when given) are left out; non-finite poses are left out. Without template
-    positions, ``pair_distances`` (:func:`learn_pair_distances`) stand in for the template's
-    distances between codes.
+    ``template.codes`` (when given) are left out; non-finite poses are left out.
+    ``pair_distances`` (:func:`learn_pair_distances`) stand in for the template's distances
+    between codes where it gives no positions for both.
 
     Returns
     -------
@@ -368,9 +368,9 @@ def group_fiducials(
     from scipy.spatial import cKDTree
 
     pairs = cKDTree(pos).query_pairs(span_mm, output_type="ndarray")
-    tdist: dict[tuple[int, int], float] = {}
-    if pair_distances and not has_positions(template):
-        tdist = {(int(a), int(b)): float(d) for (a, b), d in pair_distances.items()}
+    # Learned distances serve the code pairs the template does not place (all of them without
+    # template positions; with a learned template, another kind of unit's codes).
+    tdist = {(int(a), int(b)): float(d) for (a, b), d in (pair_distances or {}).items()}
     if template is not None:
         for ca, cb in itertools.permutations(template.positions_mm, 2):
             tdist[(ca, cb)] = float(
@@ -847,7 +847,7 @@ def assign_units(
         return list(by_unit.items()), unassigned
     template = unit_map.template if unit_map is not None else None
     sub = [base[i] for i in usable_b]
-    if pair_distances is None and not has_positions(template):
+    if pair_distances is None and not places_every_code(template):
         pair_distances = learn_pair_distances(sub, span)
     found = group_fiducials(
         sub, span_mm=span, template=template, tol_mm=rigid_tol_mm, pair_distances=pair_distances

@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from matcher_synth import make_pose
+from matcher_synth import facing_poses, make_pose, rotation
 
 from armourcam.field import dolos_geometry, make_field
 from displacement_matcher.damage import assess, thresholds
@@ -15,14 +15,6 @@ from displacement_matcher.refine import match_units
 from displacement_matcher.rigid import kabsch
 from displacement_matcher.units import UnitMap, UnitSpec, mirror_normals
 from pose_estimator.types import FiducialPose
-
-
-def _rot(axis: list[float], deg: float) -> np.ndarray:
-    import cv2
-
-    a = np.asarray(axis, dtype=np.float64)
-    r, _ = cv2.Rodrigues(a / np.linalg.norm(a) * np.radians(deg))
-    return np.asarray(r)
 
 
 def _mirror_some(poses: list[FiducialPose], share: float, seed: int) -> list[FiducialPose]:
@@ -86,7 +78,7 @@ def test_a_code_seen_beside_three_learned_ones_is_placed() -> None:
     local = {1: [12.0, 0.0, 0.0], 2: [0.0, 14.0, 0.0], 3: [0.0, 0.0, 10.0], 4: [-9.0, -8.0, 3.0]}
     poses = []
     for k in range(30):
-        R = _rot(rng.normal(size=3).tolist(), float(rng.uniform(0.0, 40.0)))
+        R = rotation(rng.normal(size=3).tolist(), float(rng.uniform(0.0, 40.0)))
         centre = np.array([100.0 * (k % 6), 100.0 * (k // 6), 900.0])
         shown = (1, 2, 3, 4) if k % 3 == 0 else (1, 2, 3)
         for c in shown:
@@ -130,19 +122,10 @@ def test_unknown_face_of_a_partial_template_still_tells_a_turn(hidden: frozenset
     partial = UnitSpec("template", full.codes, known, {c: full.normals[c] for c in known}, hidden)
     R0 = np.diag([1.0, -1.0, -1.0])
     c0 = np.array([0.0, 0.0, 800.0])
-    flip = R0 @ _rot([1.0, 0.0, 0.0], 180.0)
+    flip = R0 @ rotation([1.0, 0.0, 0.0], 180.0)
     c1 = c0 + np.array([8.0, 3.0, 0.0])
 
-    def poses(R: np.ndarray, c: np.ndarray) -> list[FiducialPose]:
-        out = []
-        for k, code in enumerate(g.codes):
-            p = c + R @ g.positions_mm[k]
-            n = R @ g.normals[k]
-            if n @ (-p / np.linalg.norm(p)) > 0.3:
-                out.append(FiducialPose(code, p, n, np.eye(3) * 0.01))
-        return out
-
-    before, after = poses(R0, c0), poses(flip, c1)
+    before, after = facing_poses(g, R0, c0), facing_poses(g, flip, c1)
     assert {p.code for p in after} == {41}
     an = match_units(before, after, unit_map=UnitMap((), partial, 40.0), gate_mm=50.0)
     assert len(an.units) == 1 and an.units[0].overturned
@@ -207,3 +190,46 @@ def test_a_hidden_face_turns_a_one_faced_unit_over() -> None:
         an = match_units(before, after, unit_map=UnitMap((), spec, 40.0), gate_mm=50.0)
         (unit,) = an.units
         assert unit.overturned is turned, hidden
+
+
+def test_a_second_kind_of_unit_is_grouped_by_its_learned_distances() -> None:
+    """Two kinds of units without a map: the commoner kind's template is learned, and the other
+    kind, packed tighter than its own faces are apart, is still grouped by the distances
+    between its codes learned from the baseline (by proximity alone its groups mix
+    neighbours)."""
+    from displacement_matcher.units import assign_units, group_fiducials
+
+    rng = np.random.default_rng(1234)
+    kind_a = {1: [12.0, 0.0, 0.0], 2: [0.0, 14.0, 0.0], 3: [0.0, 0.0, 10.0]}
+    kind_b = {5: [0.0, 0.0, 0.0], 6: [26.0, 0.0, 0.0]}
+    poses: list[FiducialPose] = []
+    owner: list[int] = []
+    for k in range(12):
+        R = rotation(rng.normal(size=3).tolist(), float(rng.uniform(0.0, 40.0)))
+        centre = np.array([100.0 * (k % 4), 100.0 * (k // 4), 900.0])
+        for c, q in kind_a.items():
+            poses.append(make_pose(c, centre + R @ np.asarray(q), sigma_z=0.1))
+            owner.append(k)
+    for k in range(30):
+        # Kind B units strewn over a small patch, often nearer a neighbour's face than their own.
+        centre = np.array([-300.0, 400.0, 900.0]) + rng.uniform(0.0, 160.0, 3) * [1, 1, 0.1]
+        turn = rotation([0.0, 0.0, 1.0], float(rng.uniform(0.0, 360.0)))
+        for c, q in kind_b.items():
+            p = centre + turn @ (np.asarray(q) - [13.0, 0.0, 0.0])
+            poses.append(make_pose(c, p + rng.normal(0.0, 0.05, 3)))
+            owner.append(100 + k)
+    spec = learn_template(poses, 40.0)
+    assert spec is not None and set(spec.positions_mm) == {1, 2, 3}
+    an = match_units(poses, poses, gate_mm=50.0, refine_passes=0)
+    assert an.learned_template is not None
+    groups = assign_units(an.result, unit_map=UnitMap((), an.learned_template, 40.0))[0]
+    owners = np.array(owner)
+    b_groups = [ix for _, ix in groups if owners[ix[0]] >= 100]
+    pure = sum(len(set(owners[ix].tolist())) == 1 and len(ix) == 2 for ix in b_groups)
+    assert pure >= 24, pure
+    # By proximity alone (no distances) far fewer are.
+    near = group_fiducials(poses, span_mm=40.0, template=an.learned_template)
+    alone = sum(
+        len(set(owners[g].tolist())) == 1 and len(g) == 2 for g in near if owners[g[0]] >= 100
+    )
+    assert alone < pure - 5, (alone, pure)

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from matcher_synth import make_pose, realistic_cov
+from matcher_synth import make_pose, realistic_cov, rotation
 from numpy.typing import NDArray
 
 from armourcam.field import dolos_geometry
@@ -36,14 +36,6 @@ UMAP = GEO.unit_map()
 DATA = Path(__file__).parent / "data"
 # Local z towards the camera (the camera looks along +z), tilted so all three front faces show.
 R0 = np.diag([1.0, -1.0, -1.0])
-
-
-def _rot(axis: list[float], deg: float) -> np.ndarray:
-    import cv2
-
-    a = np.asarray(axis, dtype=np.float64)
-    r, _ = cv2.Rodrigues(a / np.linalg.norm(a) * np.radians(deg))
-    return np.asarray(r)
 
 
 def _unit(centre: np.ndarray, R: np.ndarray) -> list[FiducialPose]:
@@ -104,7 +96,7 @@ def test_wrong_normal_branch_does_not_split_units() -> None:
     rng = np.random.default_rng(1234)
     poses, owner = [], []
     for u, c in enumerate(_row(6)):
-        for p in _unit(c, _rot([0.3, 1.0, 0.2], rng.uniform(-15, 15)) @ R0):
+        for p in _unit(c, rotation([0.3, 1.0, 0.2], rng.uniform(-15, 15)) @ R0):
             poses.append(_flip_normal(p) if rng.random() < 0.5 else p)
             owner.append(u)
     groups = group_fiducials(poses, span_mm=UMAP.span_mm, template=UMAP.template)
@@ -193,7 +185,7 @@ def test_depth_outliers_do_not_split_units() -> None:
     rng = np.random.default_rng(99)
     poses, owner = [], []
     for u, c in enumerate(_row(6)):
-        unit = _unit(c, _rot([0.3, 1.0, 0.2], rng.uniform(-15, 15)) @ R0)
+        unit = _unit(c, rotation([0.3, 1.0, 0.2], rng.uniform(-15, 15)) @ R0)
         k = int(rng.integers(len(unit)))
         for m, p in enumerate(unit):
             if m == k:
@@ -236,7 +228,7 @@ def test_lone_cross_code_match_does_not_displace_a_unit() -> None:
 
 
 # Overturned about the shank: only code 41 faces the camera.
-FLIP = R0 @ _rot([1.0, 0.0, 0.0], 180.0)
+FLIP = R0 @ rotation([1.0, 0.0, 0.0], 180.0)
 
 
 @pytest.mark.parametrize(
@@ -310,7 +302,7 @@ def test_moved_unit_keeps_its_motion_beside_a_revealed_face(
     """
     move = np.array(move_mm)
     m = np.array([0.0, 0.0, 1800.0])
-    rn = _rot([0.0, 0.0, 1.0], turn_deg) @ R0
+    rn = rotation([0.0, 0.0, 1.0], turn_deg) @ R0
     g3 = GEO.positions_mm[list(GEO.codes).index(3)]
     n = m + R0 @ g3 + np.array(offset_mm) - rn @ g3
     mover_before = [p for p in _unit(m, R0) if p.code in (3, 29)]
@@ -494,7 +486,7 @@ def test_turned_mover_seen_through_one_face_keeps_its_other_face(
     the face there: it is the mover's, which is displaced with both faces, and the covered unit
     is not displaced. Also with the face's normal on the other branch of the circle pose's
     two-fold ambiguity (``flipped``), which no rotation of the pair's normals explains."""
-    mover, still, displaced = _mover_in_front_of_covered_unit(_rot(axis, deg) @ R0, flipped)
+    mover, still, displaced = _mover_in_front_of_covered_unit(rotation(axis, deg) @ R0, flipped)
     assert displaced == 1
     assert mover.status == "displaced" and mover.n_matched == 2
     assert mover.rotation_deg == pytest.approx(deg, abs=2.0)
@@ -507,7 +499,7 @@ def test_lone_claim_stands_where_no_rigid_motion_of_the_neighbour_fits() -> None
     face and the unit seen through that one fiducial keeps its claim (it moved 2 Dn)."""
     a, m = np.array([0.0, 0.0, 1800.0]), np.array([45.0, 0.0, 1800.0])
     move = np.array([-30.0, 0.0, -30.0])
-    R1 = _rot([0.0, 0.0, 1.0], 21.0) @ R0
+    R1 = rotation([0.0, 0.0, 1.0], 21.0) @ R0
     covered = [p for p in _unit(a, R0) if p.code in (3, 29)]
     mover_before = [p for p in _unit(m, R0) if p.code in (17, 29)]
     p17, p29 = (p for p in _unit(m + move, R1) if p.code in (17, 29))
@@ -727,7 +719,7 @@ def test_lost_unit_is_found_again_by_the_faces_it_shows_now(
     old = next(p for p in mid if p.code == 29)
     lone = next(p for p in _unit(centres[2], R0) if p.code == 3)
     base = [*_unit(centres[0], R0), old, lone]
-    turn = _rot([0.2, 0.3, 1.0], turn_deg) @ R0
+    turn = rotation([0.2, 0.3, 1.0], turn_deg) @ R0
     moved = _unit(centres[1] + np.array(move_mm), turn)
     assert sorted(p.code for p in moved) == [3, 17, 29]
     cur = _unit(centres[0], R0) + [p for p in moved if p.code != 29]
@@ -812,7 +804,7 @@ def test_a_unit_seen_through_two_pairs_turns_by_its_true_rotation(
     pair's depth was not counted). The branches chosen together, both pairs measure it."""
     centre = np.array([20.0, -10.0, 1800.0])
     before = _unit(centre, R0)[:2]
-    turn = _rot([0.4, 1.0, 0.3], turn_deg)
+    turn = rotation([0.4, 1.0, 0.3], turn_deg)
     move = np.array([3.0, -5.0, -28.0])
     codes = {int(p.code) for p in before}
     after = [p for p in _unit(centre + move, turn @ R0) if int(p.code) in codes]

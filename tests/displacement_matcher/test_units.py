@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from matcher_synth import make_pose
+from matcher_synth import facing_poses, make_pose, rotation
 
 from armourcam.field import dolos_geometry, make_field
 from displacement_matcher import MatcherError, match
@@ -24,19 +24,11 @@ from pose_estimator.fusion import moved_poses
 from pose_estimator.types import FiducialPose
 
 
-def _rot(axis: list[float], deg: float) -> np.ndarray:
-    import cv2
-
-    a = np.asarray(axis, dtype=np.float64)
-    r, _ = cv2.Rodrigues(a / np.linalg.norm(a) * np.radians(deg))
-    return np.asarray(r)
-
-
 @pytest.mark.parametrize("deg", [0.0, 5.0, 25.0, 60.0])
 def test_kabsch_and_rigid_fit_recover_motion(deg: float) -> None:
     """Weighted Kabsch (points) and the normal-aided fit recover a known rigid motion."""
     rng = np.random.default_rng(1234)
-    R = _rot([1.0, 2.0, -0.5], deg)
+    R = rotation([1.0, 2.0, -0.5], deg)
     t = np.array([3.0, -7.0, 11.0])
     src = rng.normal(0, 15, (5, 3))
     dst = src @ R.T + t
@@ -87,24 +79,15 @@ def test_overturned_unit_is_flagged() -> None:
     umap = dolos_geometry().unit_map(40.0)
     R0 = np.diag([1.0, -1.0, -1.0])  # local z towards the camera
     c0 = np.array([0.0, 0.0, 800.0])
-    flip = R0 @ _rot([1.0, 0.0, 0.0], 180.0)  # about the shank (local x)
+    flip = R0 @ rotation([1.0, 0.0, 0.0], 180.0)  # about the shank (local x)
     c1 = c0 + np.array([8.0, 3.0, 0.0])
 
-    def poses(R: np.ndarray, c: np.ndarray) -> list[FiducialPose]:
-        out = []
-        for k, code in enumerate(g.codes):
-            p = c + R @ g.positions_mm[k]
-            n = R @ g.normals[k]
-            if n @ (-p / np.linalg.norm(p)) > 0.3:
-                out.append(FiducialPose(code, p, n, np.eye(3) * 0.01))
-        return out
-
-    before, after = poses(R0, c0), poses(flip, c1)
+    before, after = facing_poses(g, R0, c0), facing_poses(g, flip, c1)
     assert {p.code for p in before} == {3, 17, 29} and {p.code for p in after} == {41}
     an = match_units(before, after, unit_map=umap, gate_mm=50.0)
     assert len(an.units) == 1 and an.units[0].overturned
     # A still unit is not.
-    an2 = match_units(before, poses(R0, c0), unit_map=umap, gate_mm=50.0)
+    an2 = match_units(before, facing_poses(g, R0, c0), unit_map=umap, gate_mm=50.0)
     assert not an2.units[0].overturned and an2.units[0].distance_mm < 1e-6
 
 
@@ -305,7 +288,7 @@ def test_an_explicit_unit_with_positions_moves_at_its_own_origin() -> None:
         }
     )
     origin = np.array([10.0, -5.0, 600.0])
-    turn = _rot([1.0, 0.2, 0.0], 30.0)  # rocking: the faces turn with it
+    turn = rotation([1.0, 0.2, 0.0], 30.0)  # rocking: the faces turn with it
     shift = np.array([6.0, -2.0, 1.0])
 
     def poses(R: np.ndarray, t: np.ndarray) -> list[FiducialPose]:
@@ -338,7 +321,7 @@ def test_a_cube_spinning_about_its_face_normal_is_fitted_rigidly() -> None:
     spec = {c: p.tolist() for c, p in local.items()}
     umap = parse_unit_map({"units": {"C": {"codes": [1, 2, 3], "positions_mm": spec}}})
     origin = np.array([-20.0, 10.0, 700.0])
-    spin = _rot([0.0, 0.0, 1.0], 40.0)
+    spin = rotation([0.0, 0.0, 1.0], 40.0)
     shift = np.array([2.0, 1.0, 0.0])
     face = np.array([0.0, 0.0, -1.0])  # the face looks at the camera
     cov = np.diag([0.01, 0.01, 0.09])  # the spin about z leaves it as it is

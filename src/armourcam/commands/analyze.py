@@ -39,7 +39,11 @@ def register(subparsers: Any) -> None:
         "--displaced-dn", type=float, default=1.0, help="displaced from this many Dn (1.0)"
     )
     p.add_argument("--section-width-mm", type=float, help="section width, mm (for N_od)")
-    p.add_argument("--units", type=Path, help="unit map YAML (default: automatic grouping)")
+    p.add_argument(
+        "--units",
+        type=Path,
+        help="unit map YAML (default: the template is learned from the baseline)",
+    )
     p.add_argument("--baseline-frames", type=int, default=5, help="frames fused into the baseline")
     p.add_argument("--settle-frames", type=int, default=3, help="settled frames after a run")
     p.add_argument(

@@ -49,7 +49,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--camera", required=True, help="camera_calibration YAML file")
     p.add_argument("--diameter-mm", type=float, default=7.1, help="printed diameter (7.1)")
     p.add_argument("--out", type=output_path, required=True, help="output directory of the report")
-    p.add_argument("--units", help="unit map YAML (explicit units or a repeated template)")
+    p.add_argument(
+        "--units",
+        help="unit map YAML (explicit units or a repeated template; default: the template is "
+        "learned from the baseline, reported under 'template')",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
     p.add_argument("--design", choices=("any", "ring", "dot"), default="any")
     p.add_argument(
@@ -112,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the comparison, write the report, print the summary or the JSON."""
     from displacement_matcher.compare import compare_poses, state_from_images
     from displacement_matcher.damage import thresholds
-    from displacement_matcher.report import report_dict, write_report_files
+    from displacement_matcher.report import write_report_files
     from displacement_matcher.units import load_unit_map
     from pose_estimator.camera import CameraModel
 
@@ -215,13 +219,7 @@ def run(args: argparse.Namespace) -> int:
         "warnings": [*warnings, *cmp.warnings],
     }
     # One report mapping for the files and for --json.
-    rep = report_dict(
-        cmp.result,
-        cmp.units,
-        cmp.summary,
-        unassigned=cmp.unassigned,
-        learned_template=cmp.learned_template,
-    )
+    rep = cmp.report()
     rep.update(extra)
     write_report_files(args.out, rep, camera=camera, after_image=after_imgs[states[1].consensus[0]])
     if args.json:
