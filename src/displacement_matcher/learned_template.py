@@ -10,10 +10,11 @@ the consensus as a :class:`.units.UnitSpec` with positions and, where the groups
 face normals (each pose's normal on either branch of its two-fold ambiguity: the true faces'
 normals coincide in the unit's frame, the mirrored ones scatter with the viewing direction).
 Codes seen beside three of those in other groups are placed the same way. A code the other
-state shows (at least :data:`MIN_HIDDEN_SEEN` times) but no baseline unit does is a face the
+state shows (at least :data:`MIN_CODE_SEEN` times) but the baseline hardly does is a face the
 units' resting pose hides (a dolos's fourth fluke, facing the slope): it is listed as ``hidden``,
-so that a unit showing it has turned over. Other faces the groups do not place get neither
-position nor normal: the matcher weighs them as without a template.
+so that a unit showing it has turned over. Other codes seen that often in either state are the
+units' too, with neither position nor normal (the matcher weighs them as without a template);
+codes read fewer times are misreads or strays, and belong to no unit.
 
 The template's frame is the consensus's: its origin, where units' motions are reported, is the
 centroid of the learned faces, its axes those of the first group aligned. Camera frame in,
@@ -50,10 +51,12 @@ PROCRUSTES_ROUNDS = 3
 #: Normals within this angle of a face's consensus direction count for it, degrees; the face
 #: gets a normal when at least half its groups agree so.
 NORMAL_AGREE_DEG = 10.0
-#: Fewest sightings in the other state of a code the baseline never shows for it to be a hidden
-#: face: a code read once is as likely a misread or a stray fiducial (the thirty dolos fields
-#: end to end read 0-3 such codes once each, the hidden fourth face 2-12 times).
-MIN_HIDDEN_SEEN = 2
+#: Fewest sightings in one state of a code the template does not place for it to be on the
+#: units (a hidden face when the baseline shows it fewer times): the thirty dolos fields end to
+#: end read 0-3 codes no unit carries (partly covered fiducials misread), each at most twice in
+#: a state, and the hidden fourth face 4-6 times after the run. Such a stray in a unit's
+#: template code set bridged two units' faces into one group (seed 23).
+MIN_CODE_SEEN = 3
 
 
 def learn_template(
@@ -73,8 +76,8 @@ def learn_template(
     span_mm : float
         Largest distance between two fiducials of one unit.
     other_state : sequence of FiducialPose
-        The other state's fiducials (after the run): the template also lists their codes, and
-        those the units of ``poses`` never show are its hidden faces.
+        The other state's fiducials (after the run): the template also lists the codes seen
+        often there, and those the units of ``poses`` hardly show are its hidden faces.
     min_groups : int
         Fewest groups that must show a code set (:data:`MIN_LEARN_GROUPS`).
 
@@ -116,10 +119,15 @@ def learn_template(
         if n is not None:
             normals[c] = n
     centre = np.mean(np.array(list(positions.values())), axis=0)
-    shown = {int(p.code) for p in poses}
+    before = Counter(int(p.code) for p in poses)
     later = Counter(int(p.code) for p in other_state)
-    hidden = frozenset(c for c, k in later.items() if k >= MIN_HIDDEN_SEEN and c not in shown)
-    every = sorted({*positions, *shown, *later})
+    hidden = frozenset(
+        c
+        for c, k in later.items()
+        if k >= MIN_CODE_SEEN and before[c] < MIN_CODE_SEEN and c not in positions
+    )
+    often = {c for counts in (before, later) for c, k in counts.items() if k >= MIN_CODE_SEEN}
+    every = sorted({*positions, *often})
     return UnitSpec(
         "template",
         tuple(every),

@@ -49,6 +49,7 @@ from .units import (
     seen_in_place,
     still_in_place,
     template_pose,
+    template_span,
     unit_motions,
     unit_normals,
     units_of,
@@ -202,6 +203,10 @@ def match_units(
         # baseline shows whole say where the codes sit on a unit.
         learned_template = learn_template(result.baseline, span, other_state=result.current)
         if learned_template is not None:
+            # Its own extent, as a unit map's template without a span (a wider one let a
+            # neighbour's face join a unit's fragments, seed 23).
+            if span_mm is None:
+                span = template_span(learned_template)
             unit_map = UnitMap((), learned_template, span)
     template = unit_map.template if unit_map is not None else None
     explicit = unit_map is not None and bool(unit_map.units)

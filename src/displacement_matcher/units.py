@@ -183,6 +183,15 @@ def _spec(name: str, doc: Any) -> UnitSpec:
     return UnitSpec(str(name), codes, positions, normals, frozenset(hidden))
 
 
+def template_span(spec: UnitSpec) -> float:
+    """A template's grouping span where none is given: its own extent (the largest distance
+    between two of its positions) plus 5 mm, or :data:`DEFAULT_SPAN_MM` without two positions."""
+    if len(spec.positions_mm) < 2:
+        return DEFAULT_SPAN_MM
+    pts = np.array(list(spec.positions_mm.values()))
+    return float(np.max(np.linalg.norm(pts[:, None] - pts[None], axis=2))) + 5.0
+
+
 def parse_unit_map(doc: Any) -> UnitMap:
     """Validate a parsed unit-map mapping (see the module docstring for the format).
 
@@ -216,11 +225,7 @@ def parse_unit_map(doc: Any) -> UnitMap:
                     f"template span_mm must be a positive length in mm, got {raw_span!r}"
                 )
         if span <= 0:
-            # Not given: the template's own extent, or the default without positions.
-            span = DEFAULT_SPAN_MM
-            if len(spec.positions_mm) >= 2:
-                pts = np.array(list(spec.positions_mm.values()))
-                span = float(np.max(np.linalg.norm(pts[:, None] - pts[None], axis=2))) + 5.0
+            span = template_span(spec)
         return UnitMap((), spec, span)
     udoc = doc["units"]
     if not isinstance(udoc, Mapping) or not udoc:
