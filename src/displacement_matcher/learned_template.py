@@ -24,7 +24,7 @@ millimetres.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -64,6 +64,7 @@ def learn_template(
     span_mm: float = DEFAULT_SPAN_MM,
     *,
     other_state: Sequence[FiducialPose] = (),
+    codes: Collection[int] | None = None,
     min_groups: int = MIN_LEARN_GROUPS,
 ) -> UnitSpec | None:
     """The unit template that the units seen in ``poses`` (one state, every unit carrying the
@@ -78,6 +79,9 @@ def learn_template(
     other_state : sequence of FiducialPose
         The other state's fiducials (after the run): the template also lists the codes seen
         often there, and those the units of ``poses`` hardly show are its hidden faces.
+    codes : collection of int, optional
+        The units' codes, where known (a unit map's template without positions): only these
+        are learned, and the template lists every one of them.
     min_groups : int
         Fewest groups that must show a code set (:data:`MIN_LEARN_GROUPS`).
 
@@ -89,6 +93,10 @@ def learn_template(
         hidden faces; None
         when no code set of three or more is shown by ``min_groups`` consistent groups.
     """
+    if codes is not None:
+        wanted = {int(c) for c in codes}
+        poses = [p for p in poses if int(p.code) in wanted]
+        other_state = [p for p in other_state if int(p.code) in wanted]
     ok = [p for p in poses if np.all(np.isfinite(p.position_mm)) and np.all(np.isfinite(p.normal))]
     if len(ok) < 3 * min_groups:
         return None
@@ -127,7 +135,7 @@ def learn_template(
         if k >= MIN_CODE_SEEN and before[c] < MIN_CODE_SEEN and c not in positions
     )
     often = {c for counts in (before, later) for c, k in counts.items() if k >= MIN_CODE_SEEN}
-    every = sorted({*positions, *often})
+    every = sorted({*positions, *often} if codes is None else {int(c) for c in codes})
     return UnitSpec(
         "template",
         tuple(every),

@@ -111,8 +111,9 @@ class UnitAnalysis:
     passes : int
         Matching passes run (1 = no unit-aware refinement).
     learned_template : UnitSpec or None
-        The template learned from the baseline when no unit map was given
-        (:func:`.learned_template.learn_template`), None otherwise or when none could be.
+        The template learned from the baseline when no unit map, or a template of codes alone,
+        was given (:func:`.learned_template.learn_template`), None otherwise or when none
+        could be.
     """
 
     result: MatchResult
@@ -181,11 +182,11 @@ def match_units(
         :func:`displacement_matcher.match`): identity follows the image, where a monocular pose
         is precise, while the unit motion (:func:`unit_motions`) screens out the depth outliers.
     learn : bool
-        Without a unit map, learn the template from the baseline's units
-        (:func:`.learned_template.learn_template`: positions and normals of the faces the
-        baseline shows together) and match as with a template; where none can be learned, or
-        with ``learn=False``, units are grouped by the distances between codes learned from the
-        baseline (:func:`.units.learn_pair_distances`).
+        Without a unit map, or with a template of codes alone, learn the template from the
+        baseline's units (:func:`.learned_template.learn_template`: positions and normals of the
+        faces the baseline shows together) and match as with a template; where none can be
+        learned, or with ``learn=False``, units are grouped by the distances between codes
+        learned from the baseline (:func:`.units.learn_pair_distances`).
     **match_kw
         Passed to :func:`displacement_matcher.match` (``gate_mm``, ``code_penalty_mm``...).
     """
@@ -198,14 +199,21 @@ def match_units(
     result = match(baseline, current, **match_kw)
     span = span_mm if span_mm is not None else (unit_map.span_mm if unit_map else DEFAULT_SPAN_MM)
     learned_template = None
-    if unit_map is None and learn:
-        # The paper's case, every unit carrying the same codes with no map given: the units the
-        # baseline shows whole say where the codes sit on a unit.
-        learned_template = learn_template(result.baseline, span, other_state=result.current)
+    given = unit_map.template if unit_map is not None and not unit_map.units else None
+    bare = given is not None and not given.positions_mm and not given.normals
+    if learn and (unit_map is None or bare):
+        # The paper's case, every unit carrying the same codes with no map given (or a template
+        # of codes alone): the units the baseline shows whole say where the codes sit on a unit.
+        learned_template = learn_template(
+            result.baseline,
+            span,
+            other_state=result.current,
+            codes=None if given is None else given.codes,
+        )
         if learned_template is not None:
-            # Its own extent, as a unit map's template without a span (a wider one let a
-            # neighbour's face join a unit's fragments, seed 23).
-            if span_mm is None:
+            # Without a map, its own extent, as a unit map's template without a span (40 mm let
+            # a neighbour's face join a unit's fragments, seed 23).
+            if span_mm is None and unit_map is None:
                 span = template_span(learned_template)
             unit_map = UnitMap((), learned_template, span)
     template = unit_map.template if unit_map is not None else None

@@ -13,7 +13,7 @@ from displacement_matcher.damage import assess, thresholds
 from displacement_matcher.learned_template import MIN_CODE_SEEN, learn_template
 from displacement_matcher.refine import match_units
 from displacement_matcher.rigid import kabsch
-from displacement_matcher.units import UnitMap, UnitSpec, mirror_normals
+from displacement_matcher.units import UnitMap, UnitSpec, mirror_normals, parse_unit_map
 from pose_estimator.types import FiducialPose
 
 
@@ -248,3 +248,21 @@ def test_a_code_read_twice_is_no_face_of_the_units() -> None:
     assert spec is not None and 0 not in spec.codes
     an = match_units([*poses, *strays], poses, gate_mm=50.0, refine_passes=0)
     assert set(an.unassigned) == {len(poses), len(poses) + 1}
+
+
+def test_a_template_of_codes_alone_is_learned_too() -> None:
+    """A unit map whose template names the codes but not where they sit gets them learned from
+    the baseline, restricted to its codes (a code outside them is no face of the units)."""
+    field = make_field(120, seed=5)
+    poses = field.before.poses(np.random.default_rng(2))
+    codes_only = parse_unit_map({"template": {"codes": [3, 17, 29, 41]}})
+    an = match_units(poses, poses, unit_map=codes_only, gate_mm=50.0, refine_passes=0)
+    learned = an.learned_template
+    assert learned is not None and learned.codes == (3, 17, 29, 41)
+    assert set(learned.positions_mm) == {3, 17, 29}
+    narrow = parse_unit_map({"template": {"codes": [3, 17]}})
+    an2 = match_units(poses, poses, unit_map=narrow, gate_mm=50.0, refine_passes=0)
+    assert an2.learned_template is None  # no code set of three to learn from
+    placed = parse_unit_map({"template": {"codes": [3, 17], "positions_mm": {3: [0, 0, 0]}}})
+    an3 = match_units(poses, poses, unit_map=placed, gate_mm=50.0, refine_passes=0)
+    assert an3.learned_template is None  # positions given: the lab's template is used

@@ -234,3 +234,29 @@ def test_a_report_directory_that_is_a_file_is_named(tmp_path: Path) -> None:
     with pytest.raises(NotADirectoryError, match=r"notes\.txt is a file, not a directory"):
         write_report(tmp_path / "notes.txt" / "run1", r, units, summary)
     assert (tmp_path / "notes.txt").read_text() == "kept\n"
+
+
+def test_a_learned_template_is_reported_as_a_unit_map_template() -> None:
+    """Without a unit map the report gives the learned template under ``template``, in the unit
+    map's layout: read back as a map's template (through JSON, as a lab would keep it) it is
+    the same template, and a report with a map given has no ``template``."""
+    from armourcam.field import make_field
+    from displacement_matcher.refine import match_units
+    from displacement_matcher.units import parse_unit_map
+
+    field = make_field(300, seed=5)
+    rng = np.random.default_rng(2)
+    before, after = field.before.poses(rng), field.after.poses(rng)
+    an = match_units(before, after, gate_mm=50.0, refine_passes=0)
+    learned = an.learned_template
+    assert learned is not None and learned.hidden
+    rep = json.loads(json.dumps(report_dict(an.result, an.units, learned_template=learned)))
+    doc = {k: rep["template"][k] for k in ("codes", "positions_mm", "normals", "hidden")}
+    back = parse_unit_map({"template": doc}).template
+    assert back is not None
+    assert back.codes == learned.codes and back.hidden == learned.hidden
+    for c, p in learned.positions_mm.items():
+        np.testing.assert_allclose(back.positions_mm[c], p, atol=1e-4)
+    for c, n in learned.normals.items():
+        np.testing.assert_allclose(back.normals[c], n, atol=1e-4)
+    assert "template" not in report_dict(an.result, an.units)
