@@ -122,8 +122,8 @@ class Assessment:
     camera_motion : FrameAgreement or None
         The camera's motion between the states, when the scene shows one (:func:`camera_motion`).
     learned_template : UnitSpec or None
-        The unit template learned from the baseline when no unit map was given
-        (:func:`.learned_template.learn_template`).
+        The unit template learned from the baseline when no unit map, or a template of codes
+        alone, was given (:func:`.learned_template.learn_template`).
     """
 
     result: MatchResult

@@ -1,4 +1,5 @@
-"""A unit template learned from the baseline, for fields without a unit map.
+"""A unit template learned from the baseline, for fields without a unit map (or with a template
+that names the codes alone).
 
 In the paper's section 5 set-up every dolos carries the same codes at the same places, and a lab
 rarely measures where on the unit each fiducial sits. The baseline shows it anyway: every unit
@@ -90,8 +91,8 @@ def learn_template(
     UnitSpec or None
         ``"template"`` with positions (mm, the template's frame, origin at the learned faces'
         centroid) for the codes learned, normals for those whose groups agree on one and the
-        hidden faces; None
-        when no code set of three or more is shown by ``min_groups`` consistent groups.
+        hidden faces; None when no code set of three or more is shown by ``min_groups``
+        consistent groups.
     """
     if codes is not None:
         wanted = {int(c) for c in codes}

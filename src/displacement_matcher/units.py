@@ -7,7 +7,10 @@ with a template, units are found automatically in the baseline (and in the curre
 fiducials of different codes are grouped by proximity, never two of one code in a unit, and when
 the template gives positions (and normals) only pairs whose distance (and the rigid invariants of
 the two oriented fiducials) agree with the unit's own geometry are grouped; without positions, the
-distances between codes are learned from the baseline (:func:`learn_pair_distances`). Every
+distances between codes are learned from the baseline (:func:`learn_pair_distances`), and so,
+by :func:`displacement_matcher.refine.match_units`, is the template itself
+(:mod:`.learned_template`: where the codes sit on the unit, their normals, and the faces the
+units' resting pose hides). Every
 normal check allows for the circle pose's two-fold ambiguity (:func:`mirror_normals`): the pose
 estimator puts a sizeable share of normals on the wrong branch.
 
