@@ -1046,7 +1046,6 @@ def unit_motions(
                 rigid_tol_mm,
                 overturn_deg,
                 new_codes,
-                normals,
                 _centre_of(name, ix, base, unit_map, centres),
                 template,
             )
@@ -1394,14 +1393,13 @@ def _motion_of_unit(
     rigid_tol_mm: float,
     overturn_deg: float,
     new_codes: tuple[int, ...] = (),
-    normals: dict[int, NDArray[np.float64]] | None = None,
     centre: NDArray[np.float64] | None = None,
     template: UnitSpec | None = None,
 ) -> UnitMotion:
     """Motion of one unit from its matched fiducials (see :func:`unit_motions`).
 
     ``new_codes`` are the codes it shows now that it did not show before (appeared or cross-code
-    partners); ``normals`` the template's face normals by code.
+    partners); ``template`` gives the face normals and hidden faces.
     """
     codes = tuple(int(base[i].code) for i in ix)
     nan3 = np.full(3, np.nan)
@@ -1414,11 +1412,12 @@ def _motion_of_unit(
     # a face now shown must point against one that vanished; without them one vanished face is
     # too little evidence.
     turned_over = bool(ix) and not same and bool(new_codes)
-    if turned_over and normals:
+    normals = template.normals if template is not None else {}
+    if turned_over and template is not None and normals:
         old_codes = [c for c in codes if c in normals]
         # A face the template knows nothing of (neither normal nor hidden: a learned template
         # knows only the faces the baseline showed) is weighed as without normals.
-        known = set(normals) | (template.hidden if template is not None else frozenset())
+        known = set(normals) | template.hidden
         turned_over = any(_opposed(template, a, old_codes) for a in new_codes) or (
             len(ix) >= 2 and any(a not in known for a in new_codes)
         )
