@@ -286,6 +286,15 @@ def match_units(
         covered |= {i for i, _ in shown_in_place}
         excluded |= shown_in_place
         for u in units:
+            if u.method == "template":
+                # Found again whole where its faces now fit the template (none of them matched):
+                # its old faces are looked for where that puts them, for their own pairs.
+                for i in u.baseline_indices:
+                    p = np.asarray(baseline[i].position_mm, dtype=np.float64)
+                    pred[i] = u.rotation @ (p - u.reference_before_mm) + u.reference_before_mm
+                    pred[i] += u.translation_mm
+                    gate[i] = rigid_gate_mm
+                continue
             if u.method == "none" or u.n_matched == 0:
                 # Nothing matched. A unit of several fiducials may have moved far and lost its
                 # partners to a wrong first guess: it searches the full gate again. A lone
@@ -375,6 +384,7 @@ def match_units(
                     pred[i] = baseline[i].position_mm
                     gate[i] = translation_gate_mm
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
+        excluded |= _pairs_into_relocated(units, pair_of)
         excluded |= _contested_lone_pairs(baseline, current, units, pred, lone, span)
         if template is not None:
             excluded |= _neighbour_faces_taken(result, units, still, template, span, pair_of)
@@ -574,6 +584,21 @@ def assign_unit_groups(
                 )
             )
     return out
+
+
+def _pairs_into_relocated(
+    units: Sequence[UnitMotion], pair_of: dict[int, int]
+) -> set[tuple[int, int]]:
+    """Pairs of other units' fiducials into the faces of units found again whole
+    (:func:`.units.unit_motions`, method ``template``): those faces are the found unit's, whose
+    fit to the template outweighs one pair (a still unit's hidden face that took a mover's)."""
+    found = {
+        j: set(u.baseline_indices)
+        for u in units
+        if u.method == "template"
+        for j in u.current_indices
+    }
+    return {(i, j) for i, j in pair_of.items() if j in found and i not in found[j]}
 
 
 def _rigid_misfit(

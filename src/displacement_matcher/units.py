@@ -961,8 +961,10 @@ def unit_motions(
         if cur_groups is None:
             cur_groups = units_of(cur, span, template, rigid_tol_mm)
         evidence = {n for n in cur_of if appeared_of[n]}
+        loose = _loosely_held(result, unit_list, pairs_of, has_same, shown, taken)
         for n, faces, R, t in _relocated(
             [d for d in appeared if d.current_index not in taken],
+            loose,
             unit_list,
             base,
             cur,
@@ -976,6 +978,13 @@ def unit_motions(
             evidence,
             shown,
         ):
+            for j in faces:
+                if j in loose:
+                    # Taken from the unit its pair gave it to: that unit's fiducial is unmatched.
+                    m, k = loose[j]
+                    pairs_of[m].remove(k)
+                    cur_of[m].remove(j)
+                    vanished_of[m] += 1
             cur_of[n].extend(faces)
             appeared_of[n] += len(faces)
             taken.update(faces)
@@ -1210,8 +1219,39 @@ def _overturn_evidence(
     return [(rows[r], cols[c]) for r, c in zip(ri, ci, strict=True) if cost[r, c] < big]
 
 
+def _loosely_held(
+    result: MatchResult,
+    unit_list: Sequence[tuple[str, list[int]]],
+    pairs_of: Mapping[int, list[int]],
+    has_same: set[int],
+    shown: Mapping[int, int],
+    taken: set[int],
+) -> dict[int, tuple[int, int]]:
+    """Matched current fiducials that their pair's unit holds on weak evidence, for
+    :func:`_relocated`: current index -> (unit, entry index of the pair).
+
+    A pair that moved while another face of its unit is still seen where it was contradicts
+    that face: a still unit's face hidden now has taken a mover's face of its code come to rest
+    in front of it (30 dolos-field seeds: 6 of 15 movers reported lost). A unit's one
+    cross-code pair does not measure it either (the rule for the lost units themselves).
+    """
+    loose: dict[int, tuple[int, int]] = {}
+    for n, ks in pairs_of.items():
+        ix = unit_list[n][1]
+        lone_cross = len(ks) == 1 and n not in has_same
+        for k in ks:
+            d = result.displacements[k]
+            i, j = d.baseline_index, d.current_index
+            if i is None or j is None or j in taken or shown.get(i) == j:
+                continue
+            if lone_cross or any(p in shown for p in ix if p != i):
+                loose[j] = (n, k)
+    return loose
+
+
 def _relocated(
     appeared: Sequence[Any],
+    loose: Mapping[int, tuple[int, int]],
     unit_list: Sequence[tuple[str, list[int]]],
     base: tuple[FiducialPose, ...],
     cur: tuple[FiducialPose, ...],
@@ -1223,7 +1263,8 @@ def _relocated(
     skip_units: set[int],
     shown: Mapping[int, int],
 ) -> list[tuple[int, list[int], NDArray[np.float64], NDArray[np.float64]]]:
-    """Lost units found again as a whole: current units none of whose faces was matched.
+    """Lost units found again as a whole: current units none of whose faces was matched, or
+    matched only ``loose``-ly (:func:`_loosely_held`).
 
     A unit that moved far often shows none of the faces it showed before (one or two, the rest
     hidden by its neighbours or turned away) and so matches nothing, while faces it did not show
@@ -1246,7 +1287,7 @@ def _relocated(
     free = {int(d.current_index) for d in appeared if d.current_index is not None}
     found: list[tuple[list[int], NDArray[np.float64], NDArray[np.float64]]] = []
     for g in cur_groups:
-        if len(g) < 2 or not all(j in free for j in g):
+        if len(g) < 2 or not all(j in free or j in loose for j in g):
             continue
         fit = template_pose([cur[j] for j in g], template)
         if fit is not None:

@@ -664,6 +664,23 @@ def test_mover_come_to_rest_in_front_of_a_still_unit_keeps_its_faces() -> None:
     assert summary.displaced_units == 1
 
 
+def test_mover_face_taken_by_a_still_units_hidden_face_is_the_movers() -> None:
+    """Recorded from an end-to-end dolos field (seed 0, everything within 80 mm of a still
+    unit): the still unit's code-3 face is seen in place after the run and its code-29 face is
+    hidden. A neighbour moved 1.53 Dn, and its code-29 face came to rest 20 mm from the hidden
+    one (mostly in depth); its old code-29 face paired its new code-17 face across codes. The
+    hidden face's pair moved while its unit's other face is in place, and a lone cross-code
+    pair does not measure a unit: the mover's two faces, fitting the template together, are
+    the mover's. It is displaced by its true motion (it was lost) and the still unit stays."""
+    still, mover, _, doc = _recorded_still_and_mover("mover_face_at_hidden_seed0.json")
+    assert still.status == "still"
+    assert mover.status == "displaced"
+    assert not set(still.current_indices) & set(doc["mover_current_indices"])
+    assert set(mover.current_indices) <= set(doc["mover_current_indices"])
+    err = np.asarray(mover.translation_mm) - np.asarray(doc["mover_true_translation_mm"])
+    assert np.linalg.norm(err) < 1.5
+
+
 def test_lost_unit_showing_in_place_a_face_it_hid_is_not_relocated() -> None:
     """Recorded from an end-to-end dolos field (seed 25, everything within 80 mm of a still
     unit): the one face the still unit showed before the run (code 17) is hidden after it, and
