@@ -161,11 +161,8 @@ class _Lines:
     kappa: NDArray[np.floating[Any]]  # (k, m) curvature of the ellipse at the origin
     lower: NDArray[np.floating[Any]]  # (k, m) window along the normal, pixels from the origin
     upper: NDArray[np.floating[Any]]
-
-    @property
-    def step(self) -> NDArray[np.floating[Any]]:
-        """Spacing of the samples along each line."""
-        return (self.upper - self.lower) / (SAMPLES - 1)
+    width: NDArray[np.floating[Any]]  # (k, m) upper - lower
+    step: NDArray[np.floating[Any]]  # (k, m) spacing of the samples along each line
 
 
 def refine_by_profiles(
@@ -395,7 +392,7 @@ def _pass(
     k = cur.shape[0]
     dtype = np.float32
     lines = _lines(cur, n_lines, rho_range, cap)
-    mean, mass, m2 = _centroids(src, lines, pol)
+    mean, mass, m2 = _centroids(src, lines, pol, second_moment=measure_blur)
     lower, upper = lines.lower, lines.upper
     box = lines.step**2 / 12.0  # the forward differences' box
     good = lines.valid & np.isfinite(mean) & (mass > 0)
@@ -419,6 +416,7 @@ def _pass(
         wide = good & (mean - lower >= _WIDE_WINDOW_SPREADS * sg)
         wide &= upper - mean >= _WIDE_WINDOW_SPREADS * sg
         _, _, ratio = _truncated_normal((lower - mean) / sg, (upper - mean) / sg)
+        assert m2 is not None
         est = _mean(np.clip(m2 / ratio - box, 0.0, 9.0), wide)
         blur = np.where(np.isfinite(est), np.sqrt(np.maximum(est, 0.04)), blur)
         blur2 = (blur * blur).astype(dtype)[:, None]
@@ -430,7 +428,8 @@ def _pass(
     symmetric = _symmetric_window(cap, blur)
     z, shift, gain = _window_terms(lower, upper, sg, symmetric, cap)
     pos = (mean - sg * shift) / gain
-    good &= (pos - lower >= _MIN_WINDOW_SPREADS * sg) & (upper - pos >= _MIN_WINDOW_SPREADS * sg)
+    least = _MIN_WINDOW_SPREADS * sg
+    good &= (pos - lower >= least) & (upper - pos >= least)
     # Where the ellipse bends within the blur the curvature correction below fails.
     good &= lines.kappa * blur.astype(dtype)[:, None] <= _MAX_CURVATURE_SPREAD
     # The step must be this fiducial's edge: its height near the fit's typical one.
@@ -581,6 +580,7 @@ def _lines(
     cap_t = cap.astype(dtype)[:, None]
     lower = -np.minimum((1.0 - lo) * support, cap_t)
     upper = np.minimum((hi - 1.0) * support, cap_t)
+    width = upper - lower
     # d(signed distance)/d(u, v, A, B, C) at a point of the ellipse (rho = 1): the derivative of
     # q = (p - c)^T Q (p - c) over |grad q|, with grad q = 2 Q (p - c).
     q = quadratic_form(ellipses[:, 2:5]).astype(dtype)
@@ -589,8 +589,9 @@ def _lines(
     inv = 1.0 / np.sqrt(gx * gx + gy * gy)
     # Parameter-major (k, 5, m): each derivative is written and summed contiguously.
     jac = np.empty((du.shape[0], 5, m), dtype=dtype)
-    np.multiply(gx, -inv, out=jac[:, 0])
-    np.multiply(gy, -inv, out=jac[:, 1])
+    minus = -inv
+    np.multiply(gx, minus, out=jac[:, 0])
+    np.multiply(gy, minus, out=jac[:, 1])
     half = 0.5 * inv
     np.multiply(du * du, half, out=jac[:, 2])
     np.multiply(du * dv, inv, out=jac[:, 3])
@@ -605,14 +606,21 @@ def _lines(
         kappa,
         lower,
         upper,
+        width,
+        width / (SAMPLES - 1),
     )
 
 
 def _centroids(
-    src: NDArray[np.float32], lines: _Lines, polarity: NDArray[np.float64]
-) -> tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]]]:
+    src: NDArray[np.float32],
+    lines: _Lines,
+    polarity: NDArray[np.float64],
+    *,
+    second_moment: bool = True,
+) -> tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]] | None]:
     """Per line, over its window: the derivative's centroid (outward, pixels from the origin),
-    its mass (signed so that the expected polarity is positive) and its second central moment.
+    its mass (signed so that the expected polarity is positive) and, with ``second_moment``
+    (None otherwise: only passes that measure the blur use it), its second central moment.
 
     Forward differences of the samples telescope: the mass is the last sample less the first,
     the centroid the area edge locator over the window (midpoint rule).
@@ -622,7 +630,7 @@ def _centroids(
     # Sample-major maps (k, SAMPLES, m): every broadcast runs along the lines, not along a
     # line's few samples (the short inner loops cost more than the arithmetic).
     frac = np.linspace(0.0, 1.0, SAMPLES, dtype=f32)[None, :, None]
-    width = (lines.upper - lines.lower).astype(f32, copy=False)
+    width = lines.width.astype(f32, copy=False)
     # remap takes maps of fewer than 32767 rows and columns: the samples are written straight
     # into rows of a folded map.
     size = k * m * SAMPLES
@@ -649,16 +657,16 @@ def _centroids(
     prof = prof.ravel()[:size].reshape(k, SAMPLES, m)
     # Sums over the forward differences at the midpoints (j + 1/2) steps from the window's
     # start, of 1, (j + 1/2) and (j + 1/2)^2, as weights on the samples (one product).
-    sums = (_MOMENT_WEIGHTS.T @ prof).astype(lines.lower.dtype, copy=False)
+    weights = _MOMENT_WEIGHTS.T if second_moment else _MOMENT_WEIGHTS_01
+    sums = (weights @ prof).astype(lines.lower.dtype, copy=False)
     pol = polarity.astype(lines.lower.dtype)[:, None]
     mass = sums[:, 0] * pol
     step = lines.step
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = pol / mass
         c1 = sums[:, 1] * inv
-        c2 = sums[:, 2] * inv
         mean = lines.lower + step * c1
-        m2 = step * step * (c2 - c1 * c1)
+        m2 = step * step * (sums[:, 2] * inv - c1 * c1) if second_moment else None
     return mean, mass, m2
 
 
@@ -674,6 +682,9 @@ def _moment_weights() -> NDArray[np.float32]:
 
 
 _MOMENT_WEIGHTS = np.ascontiguousarray(_moment_weights())
+#: The weights of sum(d) and sum(d x) alone (``(2, SAMPLES)``), for passes without the second
+#: moment.
+_MOMENT_WEIGHTS_01 = np.ascontiguousarray(_MOMENT_WEIGHTS.T[:2])
 
 
 def _lag_moments() -> NDArray[np.float64]:
