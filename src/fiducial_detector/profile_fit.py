@@ -399,6 +399,7 @@ def _pass(
     # Per-line arithmetic in the lines' precision.
     blur2 = (blur * blur).astype(dtype)[:, None]
     sg = np.sqrt(blur2 + box)
+    window = None
     if partial:
         # Only lines across a printed part of the edge: steps (the mass over the fraction of
         # a step centred in the window that the window holds) near the largest ones'. (Lines
@@ -421,12 +422,14 @@ def _pass(
         blur = np.where(np.isfinite(est), np.sqrt(np.maximum(est, 0.04)), blur)
         blur2 = (blur * blur).astype(dtype)[:, None]
         sg = np.sqrt(blur2 + box)
+        window = None  # at the blur assumed before
     # The edge as the centre of the Gaussian whose window-truncated centroid was measured: to
     # first order in its offset c from the line's origin the centroid is sg T + c V, with T, V
     # the truncated standard normal's mean and variance (the origin lies within a few
     # hundredths of the edge once a fit has converged).
     symmetric = _symmetric_window(cap, blur)
-    z, shift, gain = _window_terms(lower, upper, sg, symmetric, cap)
+    # (A partial edge's step test took them at this blur already.)
+    z, shift, gain = _window_terms(lower, upper, sg, symmetric, cap) if window is None else window
     pos = (mean - sg * shift) / gain
     least = _MIN_WINDOW_SPREADS * sg
     good &= (pos - lower >= least) & (upper - pos >= least)
@@ -753,10 +756,10 @@ def _tie(
     """The prior of a partial edge's step, in the units of ``jac . delta = -t``: information
     ``Q`` (k, 5, 5) of the mean squared edge displacement over all of each ellipse's lines
     (:data:`_ARC_TIE_PX`) and the current ellipses' offsets ``theta - theta_seed`` (k, 5)."""
-    jac = lines.jac.astype(np.float64, copy=False)
-    jw = jac * lines.valid[:, None, :]
+    # Padding zeroed in single precision (cheaper than masking in double; the same values).
+    jac = np.where(lines.valid[:, None, :], lines.jac, 0.0).astype(np.float64)
     n = np.maximum(lines.valid.sum(axis=1), 1)
-    info = jw @ np.swapaxes(jac, 1, 2) / (n * _ARC_TIE_PX**2)[:, None, None]
+    info = jac @ np.swapaxes(jac, 1, 2) / (n * _ARC_TIE_PX**2)[:, None, None]
     offset = np.empty((cur.shape[0], 5))
     offset[:, :2] = cur[:, :2] - seeds[:, :2]
     offset[:, 2:] = quadratic_form(cur[:, 2:5]) - quadratic_form(seeds[:, 2:5])
