@@ -422,13 +422,13 @@ def _pass(
         blur = np.where(np.isfinite(est), np.sqrt(np.maximum(est, 0.04)), blur)
         blur2 = (blur * blur).astype(dtype)[:, None]
         sg = np.sqrt(blur2 + box)
-        window = None  # at the blur assumed before
+        window = None  # the step test's window terms were at the blur assumed before
     # The edge as the centre of the Gaussian whose window-truncated centroid was measured: to
     # first order in its offset c from the line's origin the centroid is sg T + c V, with T, V
     # the truncated standard normal's mean and variance (the origin lies within a few
     # hundredths of the edge once a fit has converged).
     symmetric = _symmetric_window(cap, blur)
-    # (A partial edge's step test took them at this blur already.)
+    # (A partial edge's step test took them already, where the blur has not changed since.)
     z, shift, gain = _window_terms(lower, upper, sg, symmetric, cap) if window is None else window
     pos = (mean - sg * shift) / gain
     least = _MIN_WINDOW_SPREADS * sg
