@@ -233,10 +233,65 @@ def track_points(
     return np.stack(_track_maps(centre, axes, angle, r0, drift, radii, params), axis=-1)
 
 
-def _sample(
-    image: NDArray[Any], u: NDArray[np.float32], v: NDArray[np.float32]
+def _sample_points(
+    image: NDArray[Any],
+    centre: NDArray[np.float64],
+    axes: NDArray[np.float64],
+    angle: NDArray[np.float64],
+    r0: float,
+    drift: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    params: NDArray[np.float64],
 ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-    """Bilinear samples of ``image`` at ``(u, v)`` (each (N, K)), and where they left the image.
+    """:func:`_sample` at the points of :func:`track_points` (arguments as there)."""
+    u, v = _track_maps(centre, axes, angle, r0, drift, radii, params, np.float32)
+    return _sample(image, u, v, _near_border(centre, axes, angle, r0, drift, radii, image.shape))
+
+
+#: Slack (pixels) of :func:`_near_border`'s bound over the float32 maps' rounding (~1e-4 px).
+_NEAR_SLACK_PX = 0.01
+
+
+def _near_border(
+    centre: NDArray[np.float64],
+    axes: NDArray[np.float64],
+    angle: NDArray[np.float64],
+    r0: float,
+    drift: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    shape: tuple[int, ...],
+) -> NDArray[np.bool_]:
+    """Candidates some of whose points at printed ``radii`` may lie outside the image: every
+    one with a point outside, and a few near the border (a bound per candidate, instead of the
+    extremes of all its points).
+
+    A point lies ``drift (r^2 - r0^2) + (r / r0) R diag(a, b) [cos t, -sin t]^T`` from the
+    centre: per axis at most ``|drift| max |r^2 - r0^2|`` plus ``max r / r0`` times the
+    amplitude of that sinusoid in ``t``.
+    """
+    c, s = np.cos(angle), np.sin(angle)
+    a, b = axes[:, 0], axes[:, 1]
+    scale = float(np.max(np.abs(radii))) / r0
+    shift = float(np.max(np.abs(radii**2 - r0**2)))
+    reach_u = np.abs(drift[:, 0]) * shift + scale * np.hypot(c * a, s * b) + _NEAR_SLACK_PX
+    reach_v = np.abs(drift[:, 1]) * shift + scale * np.hypot(s * a, c * b) + _NEAR_SLACK_PX
+    h, w = shape[:2]
+    u, v = centre[:, 0], centre[:, 1]
+    return np.asarray(
+        (u - reach_u < 0) | (u + reach_u > w - 1) | (v - reach_v < 0) | (v + reach_v > h - 1),
+        dtype=bool,
+    )
+
+
+def _sample(
+    image: NDArray[Any],
+    u: NDArray[np.float32],
+    v: NDArray[np.float32],
+    near: NDArray[np.bool_],
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Bilinear samples of ``image`` at ``(u, v)`` (each (N, K)), and where they left the image;
+    ``near``: the candidates (rows) whose points may have (:func:`_near_border`), the only ones
+    tested point by point.
 
     OpenCV interpolates in the image's own type (an 8-bit image gives 8-bit samples, ample for
     telling black from white), so the full frame is never converted to float. The samples come
@@ -264,9 +319,6 @@ def _sample(
         )
         out[start:stop] = got
     h, w = image.shape
-    # Whole candidates first: the exact per-point test is needed only near the image border.
-    near = (u.min(axis=1) < 0) | (u.max(axis=1) > w - 1)
-    near |= (v.min(axis=1) < 0) | (v.max(axis=1) > h - 1)
     outside = np.zeros((n, k), dtype=bool)
     if near.any():
         un, vn = u[near], v[near]
@@ -340,8 +392,7 @@ def read_codes(
     ref_t = (np.arange(_REF_ANGLES) + 0.25) * (2.0 * np.pi / _REF_ANGLES)
     ref_r = np.repeat(np.array([*black_r, *white_r]), _REF_ANGLES)
     ref_t_all = np.tile(ref_t, len(black_r) + len(white_r))
-    u, v = _track_maps(centre, axes, angle, r0, k, ref_r, ref_t_all, np.float32)
-    refs, outside = _sample(image, u, v)
+    refs, outside = _sample_points(image, centre, axes, angle, r0, k, ref_r, ref_t_all)
     n_black = len(black_r) * _REF_ANGLES
     black_s, white_s = refs[:, :n_black], refs[:, n_black:]
     # Everything below works on sums of samples, exact for integer images: ``ring`` is 3 samples
@@ -370,8 +421,9 @@ def read_codes(
     n_rad = len(_RAD)
     t_all = np.tile((np.arange(n_ang) + 0.5) * step, n_rad)
     r_all = np.repeat(design.track_inner + _RAD * width, n_ang)
-    u, v = _track_maps(centre[read], axes[read], angle[read], r0, k[read], r_all, t_all, np.float32)
-    vals, outside = _sample(image, u, v)
+    vals, outside = _sample_points(
+        image, centre[read], axes[read], angle[read], r0, k[read], r_all, t_all
+    )
     ok[read] = ~outside.any(axis=1)  # rule 1 on the track
     ring = vals[:, 0:n_ang].copy()
     for j in range(1, n_rad):
@@ -544,8 +596,7 @@ def model_read(
     radii = design.track_inner + _MODEL_RAD * width
     r_all = np.repeat(radii, n_ang)
     t_all = np.tile(t, len(radii))
-    u, v = _track_maps(centre, axes, angle, r0, k, r_all, t_all, np.float32)
-    vals, outside = _sample(image, u, v)
+    vals, outside = _sample_points(image, centre, axes, angle, r0, k, r_all, t_all)
     black_bands = [(0.0, design.dot_radius)]
     if design.annulus_inner is not None:
         black_bands.append((design.annulus_inner, 1.0))

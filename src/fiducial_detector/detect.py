@@ -197,6 +197,25 @@ class _Candidates:
     drift: NDArray[np.float64]  # (N, 2)
 
 
+class _Float32Frame:
+    """A frame's float32 copy (what the profile fits sample), made on first use and then shared
+    by every stage and design of the frame: a 6 Mpx copy costs 1-3 ms (more when its memory is
+    fresh), and the ``dot`` design's arcs, ``design="any"``'s second design and the circles
+    each made their own."""
+
+    __slots__ = ("_copy", "_grey")
+
+    def __init__(self, grey: NDArray[np.generic]) -> None:
+        self._grey = grey
+        self._copy: NDArray[np.float32] | None = None
+
+    def get(self) -> NDArray[np.float32]:
+        """The float32 copy of the whole frame."""
+        if self._copy is None:
+            self._copy = np.asarray(self._grey, dtype=np.float32)
+        return self._copy
+
+
 def detect(
     image: NDArray[np.generic],
     *,
@@ -345,12 +364,15 @@ def detect_grey(
     found: list[FiducialDetection] = []
     designs = (RING, DOT) if config.design == "any" else (DESIGNS[config.design],)
     noise: float | None = None  # estimated once, when the first candidates need it
+    frame32 = _Float32Frame(grey)
     for design in designs:
         cands = _candidates(bounds, design, config.min_diameter_px, max_d)
         cands = _outside(cands, found)
         if noise is None and len(cands.centre):
             noise = _noise_std(grey)
-        found += _finish(grey, full_scale, cands, config.reader, config.subpixel, noise)
+        found += _finish(
+            grey, full_scale, cands, config.reader, config.subpixel, noise, frame32=frame32
+        )
     found = _deduplicate(found)
     found.sort(key=lambda d: (d.center_px[1], d.center_px[0]))
     return found
@@ -433,9 +455,12 @@ def _finish(
     reader: ReaderConfig,
     subpixel: SubpixelMethod = "profile",
     noise: float | None = None,
+    *,
+    frame32: _Float32Frame | None = None,
 ) -> list[FiducialDetection]:
     """Read codes, fit every circle of the accepted candidates, read again, build results
-    (``noise``: the image's noise sd, estimated here when not given)."""
+    (``noise``: the image's noise sd, estimated here when not given; ``frame32``: the frame's
+    shared float32 copy, made here when not given)."""
     if len(cands.centre) == 0:
         return []
     design = cands.design
@@ -506,7 +531,9 @@ def _finish(
     idx = np.nonzero(first.accepted)[0]
     if idx.size == 0:
         return []
-    fitted_all = _fit_circles(grey, noise, cands, idx, subpixel)
+    if frame32 is None:
+        frame32 = _Float32Frame(grey)
+    fitted_all = _fit_circles(grey, noise, cands, idx, subpixel, frame32)
     keep: list[int] = []
     fitted: list[tuple[Ellipse, ...]] = []
     for i, group in zip(idx.tolist(), fitted_all, strict=True):
@@ -551,7 +578,8 @@ def _finish(
         confirmed = {int(j) for j in tj[ok]}
     checked = {j for j, _, _ in thin}
     final = [(j, reading, k) for j, reading, k in chosen if j not in checked or j in confirmed]
-    groups = fit_arcs(grey, [fitted[j] for j, _, _ in final], design, noise)
+    arcs_src = frame32.get() if design.arcs and final else None
+    groups = fit_arcs(grey, [fitted[j] for j, _, _ in final], design, noise, src=arcs_src)
     return _detections(design, groups, [(reading, k) for _, reading, k in final])
 
 
@@ -582,10 +610,13 @@ def _fit_circles(
     cands: _Candidates,
     idx: NDArray[np.intp],
     subpixel: SubpixelMethod,
+    frame32: _Float32Frame,
 ) -> list[tuple[Ellipse, ...]]:
-    """:func:`fit_design_circles` for candidates ``idx``."""
+    """:func:`fit_design_circles` for candidates ``idx`` (``frame32``: the frame's float32 copy,
+    taken only by the profile fits)."""
     seeds = np.column_stack([cands.centre[idx], cands.axes[idx], cands.angle[idx]])
-    return fit_design_circles(grey, seeds, cands.design, noise, method=subpixel)
+    src = frame32.get() if subpixel == "profile" else None
+    return fit_design_circles(grey, seeds, cands.design, noise, method=subpixel, src=src)
 
 
 def fit_design_circles(
@@ -595,6 +626,7 @@ def fit_design_circles(
     noise_std: float,
     *,
     method: SubpixelMethod = "profile",
+    src: NDArray[np.float32] | None = None,
 ) -> list[tuple[Ellipse, ...]]:
     """Sub-pixel ellipses of every printed circle of fiducials of one design (step 3, then better).
 
@@ -612,6 +644,9 @@ def fit_design_circles(
         ``profile``: every circle from edge profiles along its normals (:mod:`.profile_fit`),
         the pose circle first, the others seeded from it scaled and given its measured blur.
         ``ml``: as below.
+    src : (H, W) ndarray of float32, optional
+        ``grey`` as float32, where the caller has it already (the profile fits sample it);
+        otherwise converted here.
 
     Returns
     -------
@@ -636,7 +671,8 @@ def fit_design_circles(
         raise DetectorError(f"method must be one of {SUBPIXEL_METHODS}, got {method!r}")
     if method == "ml" or len(seeds) == 0:
         return _fit_ml(grey, seeds, design, noise_std)
-    src = np.asarray(grey, dtype=np.float32)
+    if src is None:
+        src = np.asarray(grey, dtype=np.float32)
     first = _profile_circle(src, design, 0, seeds, None, noise_std)
     # Where most of the pose circle's lines found no clean edge (a small oblique dot whose
     # windows the code track cuts short), the profiles say too little: the model fit instead.
@@ -669,6 +705,8 @@ def fit_arcs(
     groups: list[tuple[Ellipse, ...]],
     design: FiducialDesign,
     noise_std: float | None = None,
+    *,
+    src: NDArray[np.float32] | None = None,
 ) -> list[tuple[Ellipse, ...]]:
     """Each fiducial's fitted circles followed by its design's coding-track arcs (the ``dot``
     design's track's outer edge), where they could be fitted.
@@ -691,6 +729,9 @@ def fit_arcs(
     noise_std : float, optional
         Image noise sd in ``grey``'s units: the arcs' covariances are propagated from it
         (otherwise from their residuals).
+    src : (H, W) ndarray of float32, optional
+        ``grey`` as float32, where the caller has it already; otherwise the region the arcs'
+        windows can reach is converted here.
 
     Returns
     -------
@@ -701,14 +742,15 @@ def fit_arcs(
     if not design.arcs or not groups:
         return groups
     base = np.array([_parameters(g[0]) for g in groups])
-    # One float32 copy of the region the arcs' windows can reach (not the whole frame).
+    # Only the region the arcs' windows can reach is sampled (its float32 copy, or a view of
+    # the frame's; cut there either way, so that borders replicate and coordinates round alike).
     reach = base[:, 2] * PAPER_RADIUS / r0 + MAX_WINDOW_PX + 2.0
     h, w = grey.shape[:2]
     u0 = int(np.clip(np.floor(np.min(base[:, 0] - reach)), 0, w))
     v0 = int(np.clip(np.floor(np.min(base[:, 1] - reach)), 0, h))
     u1 = int(np.clip(np.ceil(np.max(base[:, 0] + reach)) + 1, u0, w))
     v1 = int(np.clip(np.ceil(np.max(base[:, 1] + reach)) + 1, v0, h))
-    src = np.asarray(grey[v0:v1, u0:u1], dtype=np.float32)
+    region = np.asarray(grey[v0:v1, u0:u1], dtype=np.float32) if src is None else src[v0:v1, u0:u1]
     base[:, 0] -= u0
     base[:, 1] -= v0
     out = list(groups)
@@ -717,7 +759,7 @@ def fit_arcs(
         seeds[:, 2:4] *= arc.radius / r0
         r = arc.radius
         res = refine_by_profiles_f32(
-            src,
+            region,
             seeds,
             np.full(len(seeds), 1.0 if arc.dark_inside else -1.0),
             design.half_way(r),
@@ -1172,23 +1214,14 @@ def _ellipses(
     idx = np.arange(len(fits)) if rows is None else rows
     good = fits.ok[idx] if keep is None else fits.ok[idx] & keep
     # Python scalars taken out of the arrays in one call each (per-element indexing of numpy
-    # arrays costs more than building the Ellipse).
+    # arrays costs more than building the Ellipse), the covariances as views by iteration, and
+    # the fields passed by position (keywords cost a quarter of the whole).
     params = fits.params[idx].tolist()
     chi = fits.chi[idx].tolist()
-    cov = fits.covariance[idx]
+    cov = list(fits.covariance[idx])
     return [
-        Ellipse(
-            center_px=(p[0], p[1]),
-            semi_major=p[2],
-            semi_minor=p[3],
-            angle=p[4],
-            covariance=cov[n],
-            radius=radius,
-            rms_residual=c,
-        )
-        if g
-        else None
-        for n, (g, p, c) in enumerate(zip(good.tolist(), params, chi, strict=True))
+        Ellipse((u, v), a, b, angle, cv, radius, c) if g else None
+        for g, (u, v, a, b, angle), c, cv in zip(good.tolist(), params, chi, cov, strict=True)
     ]
 
 

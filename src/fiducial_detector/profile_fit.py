@@ -161,11 +161,8 @@ class _Lines:
     kappa: NDArray[np.floating[Any]]  # (k, m) curvature of the ellipse at the origin
     lower: NDArray[np.floating[Any]]  # (k, m) window along the normal, pixels from the origin
     upper: NDArray[np.floating[Any]]
-
-    @property
-    def step(self) -> NDArray[np.floating[Any]]:
-        """Spacing of the samples along each line."""
-        return (self.upper - self.lower) / (SAMPLES - 1)
+    width: NDArray[np.floating[Any]]  # (k, m) upper - lower
+    step: NDArray[np.floating[Any]]  # (k, m) spacing of the samples along each line
 
 
 def refine_by_profiles(
@@ -395,13 +392,14 @@ def _pass(
     k = cur.shape[0]
     dtype = np.float32
     lines = _lines(cur, n_lines, rho_range, cap)
-    mean, mass, m2 = _centroids(src, lines, pol)
+    mean, mass, m2 = _centroids(src, lines, pol, second_moment=measure_blur)
     lower, upper = lines.lower, lines.upper
     box = lines.step**2 / 12.0  # the forward differences' box
     good = lines.valid & np.isfinite(mean) & (mass > 0)
     # Per-line arithmetic in the lines' precision.
     blur2 = (blur * blur).astype(dtype)[:, None]
     sg = np.sqrt(blur2 + box)
+    window = None
     if partial:
         # Only lines across a printed part of the edge: steps (the mass over the fraction of
         # a step centred in the window that the window holds) near the largest ones'. (Lines
@@ -419,18 +417,22 @@ def _pass(
         wide = good & (mean - lower >= _WIDE_WINDOW_SPREADS * sg)
         wide &= upper - mean >= _WIDE_WINDOW_SPREADS * sg
         _, _, ratio = _truncated_normal((lower - mean) / sg, (upper - mean) / sg)
+        assert m2 is not None
         est = _mean(np.clip(m2 / ratio - box, 0.0, 9.0), wide)
         blur = np.where(np.isfinite(est), np.sqrt(np.maximum(est, 0.04)), blur)
         blur2 = (blur * blur).astype(dtype)[:, None]
         sg = np.sqrt(blur2 + box)
+        window = None  # the step test's window terms were at the blur assumed before
     # The edge as the centre of the Gaussian whose window-truncated centroid was measured: to
     # first order in its offset c from the line's origin the centroid is sg T + c V, with T, V
     # the truncated standard normal's mean and variance (the origin lies within a few
     # hundredths of the edge once a fit has converged).
     symmetric = _symmetric_window(cap, blur)
-    z, shift, gain = _window_terms(lower, upper, sg, symmetric, cap)
+    # (A partial edge's step test took them already, where the blur has not changed since.)
+    z, shift, gain = _window_terms(lower, upper, sg, symmetric, cap) if window is None else window
     pos = (mean - sg * shift) / gain
-    good &= (pos - lower >= _MIN_WINDOW_SPREADS * sg) & (upper - pos >= _MIN_WINDOW_SPREADS * sg)
+    least = _MIN_WINDOW_SPREADS * sg
+    good &= (pos - lower >= least) & (upper - pos >= least)
     # Where the ellipse bends within the blur the curvature correction below fails.
     good &= lines.kappa * blur.astype(dtype)[:, None] <= _MAX_CURVATURE_SPREAD
     # The step must be this fiducial's edge: its height near the fit's typical one.
@@ -581,6 +583,7 @@ def _lines(
     cap_t = cap.astype(dtype)[:, None]
     lower = -np.minimum((1.0 - lo) * support, cap_t)
     upper = np.minimum((hi - 1.0) * support, cap_t)
+    width = upper - lower
     # d(signed distance)/d(u, v, A, B, C) at a point of the ellipse (rho = 1): the derivative of
     # q = (p - c)^T Q (p - c) over |grad q|, with grad q = 2 Q (p - c).
     q = quadratic_form(ellipses[:, 2:5]).astype(dtype)
@@ -589,8 +592,9 @@ def _lines(
     inv = 1.0 / np.sqrt(gx * gx + gy * gy)
     # Parameter-major (k, 5, m): each derivative is written and summed contiguously.
     jac = np.empty((du.shape[0], 5, m), dtype=dtype)
-    np.multiply(gx, -inv, out=jac[:, 0])
-    np.multiply(gy, -inv, out=jac[:, 1])
+    minus = -inv
+    np.multiply(gx, minus, out=jac[:, 0])
+    np.multiply(gy, minus, out=jac[:, 1])
     half = 0.5 * inv
     np.multiply(du * du, half, out=jac[:, 2])
     np.multiply(du * dv, inv, out=jac[:, 3])
@@ -605,14 +609,21 @@ def _lines(
         kappa,
         lower,
         upper,
+        width,
+        width / (SAMPLES - 1),
     )
 
 
 def _centroids(
-    src: NDArray[np.float32], lines: _Lines, polarity: NDArray[np.float64]
-) -> tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]]]:
+    src: NDArray[np.float32],
+    lines: _Lines,
+    polarity: NDArray[np.float64],
+    *,
+    second_moment: bool = True,
+) -> tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]] | None]:
     """Per line, over its window: the derivative's centroid (outward, pixels from the origin),
-    its mass (signed so that the expected polarity is positive) and its second central moment.
+    its mass (signed so that the expected polarity is positive) and, with ``second_moment``
+    (None otherwise: only passes that measure the blur use it), its second central moment.
 
     Forward differences of the samples telescope: the mass is the last sample less the first,
     the centroid the area edge locator over the window (midpoint rule).
@@ -622,20 +633,22 @@ def _centroids(
     # Sample-major maps (k, SAMPLES, m): every broadcast runs along the lines, not along a
     # line's few samples (the short inner loops cost more than the arithmetic).
     frac = np.linspace(0.0, 1.0, SAMPLES, dtype=f32)[None, :, None]
-    width = (lines.upper - lines.lower).astype(f32, copy=False)
+    width = lines.width.astype(f32, copy=False)
     # remap takes maps of fewer than 32767 rows and columns: the samples are written straight
     # into rows of a folded map.
     size = k * m * SAMPLES
     rows = -(-size // _FOLD)
-    fx = np.zeros(rows * _FOLD, dtype=f32)
-    fy = np.zeros(rows * _FOLD, dtype=f32)
+    # Only the fold's tail needs zeros; the offsets along the lines serve both coordinates.
+    fx = np.empty(rows * _FOLD, dtype=f32)
+    fy = np.empty(rows * _FOLD, dtype=f32)
+    along = width[:, None, :] * frac
     for buf, origin, normal in (
         (fx, lines.origin_u, lines.normal_u),
         (fy, lines.origin_v, lines.normal_v),
     ):
+        buf[size:] = 0.0
         view = buf[:size].reshape(k, SAMPLES, m)
-        np.multiply(width[:, None, :], frac, out=view)
-        view *= normal.astype(f32, copy=False)[:, None, :]
+        np.multiply(along, normal.astype(f32, copy=False)[:, None, :], out=view)
         view += (origin + normal * lines.lower).astype(f32)[:, None, :]
     prof = cv2.remap(
         src,
@@ -647,16 +660,16 @@ def _centroids(
     prof = prof.ravel()[:size].reshape(k, SAMPLES, m)
     # Sums over the forward differences at the midpoints (j + 1/2) steps from the window's
     # start, of 1, (j + 1/2) and (j + 1/2)^2, as weights on the samples (one product).
-    sums = (_MOMENT_WEIGHTS.T @ prof).astype(lines.lower.dtype, copy=False)
+    weights = _MOMENT_WEIGHTS.T if second_moment else _MOMENT_WEIGHTS_01
+    sums = (weights @ prof).astype(lines.lower.dtype, copy=False)
     pol = polarity.astype(lines.lower.dtype)[:, None]
     mass = sums[:, 0] * pol
     step = lines.step
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = pol / mass
         c1 = sums[:, 1] * inv
-        c2 = sums[:, 2] * inv
         mean = lines.lower + step * c1
-        m2 = step * step * (c2 - c1 * c1)
+        m2 = step * step * (sums[:, 2] * inv - c1 * c1) if second_moment else None
     return mean, mass, m2
 
 
@@ -672,6 +685,9 @@ def _moment_weights() -> NDArray[np.float32]:
 
 
 _MOMENT_WEIGHTS = np.ascontiguousarray(_moment_weights())
+#: The weights of sum(d) and sum(d x) alone (``(2, SAMPLES)``), for passes without the second
+#: moment.
+_MOMENT_WEIGHTS_01 = np.ascontiguousarray(_MOMENT_WEIGHTS.T[:2])
 
 
 def _lag_moments() -> NDArray[np.float64]:
@@ -740,10 +756,10 @@ def _tie(
     """The prior of a partial edge's step, in the units of ``jac . delta = -t``: information
     ``Q`` (k, 5, 5) of the mean squared edge displacement over all of each ellipse's lines
     (:data:`_ARC_TIE_PX`) and the current ellipses' offsets ``theta - theta_seed`` (k, 5)."""
-    jac = lines.jac.astype(np.float64, copy=False)
-    jw = jac * lines.valid[:, None, :]
+    # Padding zeroed in single precision (cheaper than masking in double; the same values).
+    jac = np.where(lines.valid[:, None, :], lines.jac, 0.0).astype(np.float64)
     n = np.maximum(lines.valid.sum(axis=1), 1)
-    info = jw @ np.swapaxes(jac, 1, 2) / (n * _ARC_TIE_PX**2)[:, None, None]
+    info = jac @ np.swapaxes(jac, 1, 2) / (n * _ARC_TIE_PX**2)[:, None, None]
     offset = np.empty((cur.shape[0], 5))
     offset[:, :2] = cur[:, :2] - seeds[:, :2]
     offset[:, 2:] = quadratic_form(cur[:, 2:5]) - quadratic_form(seeds[:, 2:5])
@@ -777,23 +793,31 @@ def _solve(
     # A partial edge's lines are weighed against its prior by their sd: assumed in the first
     # round, the residuals' in the second.
     sd = np.full(k, _TIE_LINE_SD)
+    inv: NDArray[np.float64] | None = None
     for rnd in range(2):
         used = use.sum(axis=1)
         solvable = used >= _MIN_LINES
+        n_solvable = int(solvable.sum())
         delta = np.full((k, 5), np.nan)
-        if np.any(solvable):
+        if n_solvable:
             lhs, right = normal[solvable], rhs[solvable]
             if prior is not None:
                 q, o = prior[0][solvable], prior[1][solvable]
                 scale = np.maximum(sd[solvable], 1e-3)[:, None, None] ** 2
                 lhs = lhs + scale * q
                 right = right - (scale * (q @ o[:, :, None]))[:, :, 0]
-            delta[solvable] = per_matrix(
-                lambda a, v: np.linalg.solve(a, v[..., None])[..., 0],
-                (int(solvable.sum()), 5),
-                lhs,
-                right,
-            )
+            if prior is None and rnd == 1:
+                # The last round's matrix is the covariance's: its inverse serves the step too
+                # (a batched solve costs two thirds of a batched inverse).
+                inv = per_matrix(np.linalg.inv, (n_solvable, 5, 5), lhs)
+                delta[solvable] = (inv @ right[:, :, None])[:, :, 0]
+            else:
+                delta[solvable] = per_matrix(
+                    lambda a, v: np.linalg.solve(a, v[..., None])[..., 0],
+                    (n_solvable, 5),
+                    lhs,
+                    right,
+                )
         step = np.nan_to_num(delta)
         if rnd == 0:
             resid = np.where(use, t + (step.astype(jac.dtype)[:, None, :] @ jac)[:, 0, :], 0.0)
@@ -815,8 +839,9 @@ def _solve(
             ss += np.einsum("ki,kij,kj->k", step, normal, step)
             sd = np.sqrt(np.maximum(ss, 0.0) / np.maximum(used - 5, 1))
     cov = np.full((k, 5, 5), np.nan)
-    if np.any(solvable):
-        inv = per_matrix(np.linalg.inv, (int(solvable.sum()), 5, 5), normal[solvable])
+    if n_solvable:
+        if inv is None:
+            inv = per_matrix(np.linalg.inv, (n_solvable, 5, 5), normal[solvable])
         var = sd[solvable] ** 2
         if noise_var is not None:
             var = np.fmax(noise_var[solvable], var - MISFIT_TOLERANCE_PX**2)
