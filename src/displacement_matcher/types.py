@@ -181,7 +181,8 @@ class UnitMotion:
         Fiducials of the unit matched between the two sets.
     method : {"rigid", "translation", "template", "none"}
         ``rigid``: weighted Kabsch/Umeyama over >= 3 consistently matched fiducials, or over >= 2
-        whose normals (before and after) fix the rotation; ``translation``: otherwise, rotation
+        whose normals (before and after) fix the rotation, or, for one pair that moved, the
+        template fitted to two or more faces in each state; ``translation``: otherwise, rotation
         unknown (identity); ``template``: none of its faces matched, but the faces it shows now
         were found together and the unit's template fitted to them (its motion is between the
         template's poses before and now; translation only when one face located it before);

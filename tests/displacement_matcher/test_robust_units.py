@@ -755,6 +755,30 @@ def test_lost_unit_is_found_again_by_the_faces_it_shows_now(
     assert by_index[(0, 1, 2)].status == "still"
 
 
+@pytest.mark.parametrize("turn_deg", [20.0, 35.0])
+def test_unit_through_one_pair_is_measured_by_its_template_in_both_states(turn_deg: float) -> None:
+    """A unit shows codes 3 and 29 before the run, and 17 and 29 after moving 25 mm and turning:
+    one same-code pair. Its offset is that face's motion, which the turn carries several mm
+    from the unit's own; the template fitted to the two faces in each state measures the unit's
+    motion at its origin, and its rotation."""
+    centre = np.array([20.0, -10.0, 1800.0])
+    move = np.array([15.0, -12.0, 14.0])
+    turn = rotation([0.3, 1.0, 0.2], turn_deg)
+    before = [p for p in _unit(centre, R0) if p.code in (3, 29)]
+    after = [p for p in _unit(centre + move, turn @ R0) if p.code in (17, 29)]
+    assert sorted(p.code for p in before) == [3, 29] and sorted(p.code for p in after) == [17, 29]
+    face_move = (
+        next(p for p in after if p.code == 29).position_mm
+        - next(p for p in before if p.code == 29).position_mm
+    )
+    assert np.linalg.norm(face_move - move) > 3.0  # the pair alone would be this far off
+    an = match_units(before, after, unit_map=UMAP, gate_mm=50.0)
+    (unit,) = an.units
+    assert unit.n_matched == 1 and unit.method == "rigid"
+    np.testing.assert_allclose(unit.translation_mm, move, atol=0.3)
+    assert unit.rotation_deg == pytest.approx(turn_deg, abs=1.0)
+
+
 def test_a_lone_cross_code_partner_does_not_hide_an_overturn() -> None:
     """A unit seen through one face turns over and rolls away, showing only its code-41 face;
     a neighbour's face of another code, hidden before, shows now near the old face.
