@@ -448,12 +448,14 @@ def assign_unit_groups(
     candidates when at least two codes are on both and their same-code pairs agree on one
     translation within ``tol_mm`` across the line of sight (two coherent fiducials are evidence
     one stranger is not). Costs follow the fiducial matching's (:func:`displacement_matcher.match`,
-    where a fiducial left unmatched costs half of ``gate_mm``), face by face: the motion costs
+    where a fiducial left unmatched costs half of ``gate_mm``): the motion costs
     its length, each shared pair saves the current face's half gate and the baseline face's,
-    except that a baseline face with a current fiducial now in front of it (:func:`_covered`)
-    costs nothing unmatched (it is hidden there, not gone), so its pair saves only the current
-    half. A unit left unassigned costs nothing. The assignment (exact, minimum cost, each unit
-    and group used at most once, no match allowed) prefers more shared faces, then the smallest
+    except that a unit every shared face of which has a current fiducial now in front of it
+    (:func:`_covered`) is hidden there, not gone: its faces cost nothing unmatched, so its pairs
+    save only the current halves. (Judged face by face, one covered face of a unit that moved
+    19 mm let a neighbour that moved 31 mm take its group, seed 21.) A unit left unassigned
+    costs nothing. The assignment (exact, minimum cost, each unit and group used at most once,
+    no match allowed) prefers more shared faces, then the smallest
     motion, and of two units whose faces fit one group, it gives the group to the one whose
     place is now empty (a mover come to rest 20 mm in front of a neighbour showing the same
     codes; 30 dolos-field seeds: still units counted displaced 5 -> 4). A baseline unit with a
@@ -555,14 +557,15 @@ def assign_unit_groups(
     big = 1e9
     cost = np.full((len(ur), len(uc) + len(ur)), big)
     # A baseline face not seen now is either hidden (behind a unit that may have come to rest in
-    # front of it: a candidate group's faces) or gone; only a gone one costs its half gate.
+    # front of it: a candidate group's faces) or gone; a unit with a gone face is gone from its
+    # place, and only then do its faces cost their half gates.
     occluders = list({j for c in uc for j in cur_groups[c]})
     front = np.array([current[j].position_mm for j in occluders], dtype=np.float64)
     front_sd = np.array([current[j].sigma_mm[2] for j in occluders], dtype=np.float64)
     shared_faces = {i for pairs in shares for i, _ in pairs}
     gone = {i: not _covered(baseline, [i], front, front_sd) for i in shared_faces}
     costs = [
-        float(np.linalg.norm(t)) - 0.5 * gate_mm * sum(1 + gone[i] for i, _ in pairs)
+        float(np.linalg.norm(t)) - 0.5 * gate_mm * len(pairs) * (1 + any(gone[i] for i, _ in pairs))
         for t, pairs in zip(motions, shares, strict=True)
     ]
     cost[:, len(uc) :] = np.where(np.eye(len(ur), dtype=bool), 0.0, big)

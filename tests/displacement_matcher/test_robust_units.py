@@ -681,6 +681,22 @@ def test_mover_face_taken_by_a_still_units_hidden_face_is_the_movers() -> None:
     assert np.linalg.norm(err) < 1.5
 
 
+def test_one_covered_face_does_not_give_a_movers_group_to_its_neighbour() -> None:
+    """Recorded from an end-to-end dolos field (seed 21, everything within 80 mm of a unit):
+    the unit moved 19 mm and shows its two faces (codes 29 and 17) again; its neighbour, three
+    faces before, moved 16 mm and shows one now. Both share the two codes with the unit's new
+    faces, the neighbour by a 31 mm move. One of the unit's old faces has a current fiducial in
+    front of it, the other not: the unit is gone from its place, and its faces count as the
+    neighbour's do. The unit keeps its faces, measured within 3 mm of its true motion (it took
+    the neighbour's one face, 33 mm, and the neighbour its faces), and the neighbour keeps its
+    own."""
+    unit, neighbour, _, doc = _recorded_still_and_mover("covered_face_mover_seed21.json")
+    assert set(unit.current_indices) == set(doc["unit_current_indices"])
+    err = np.asarray(unit.translation_mm) - np.asarray(doc["unit_true_translation_mm"])
+    assert np.linalg.norm(err) < 3.0
+    assert set(neighbour.current_indices) <= set(doc["mover_current_indices"])
+
+
 def test_lost_unit_showing_in_place_a_face_it_hid_is_not_relocated() -> None:
     """Recorded from an end-to-end dolos field (seed 25, everything within 80 mm of a still
     unit): the one face the still unit showed before the run (code 17) is hidden after it, and
