@@ -158,8 +158,10 @@ def match_units(
     fix, :func:`_turned_onto`) or by the template fitted to a still neighbour's faces
     (:func:`_neighbour_faces_taken`), or where the unit shows now, in place, a face it hid before
     (:func:`_hidden_face_shown`). A unit none of whose faces matched is found again where the faces
-    it shows now, none matched either, fit the template (:func:`.units.unit_motions`). Each pass is
-    still one exact global matching.
+    it shows now, none matched either (or only on weak evidence), fit the template
+    (:func:`.units.unit_motions`); other units' pairs into those faces are then ruled out and its
+    old faces are looked for where the template puts them. Each pass is still one exact global
+    matching.
 
     Parameters
     ----------

@@ -887,10 +887,13 @@ def unit_motions(
     showed before (with template normals) is evidence that the unit turned over: such faces go
     one to one, within the matching gate, to units that lost all their old faces
     (:func:`_overturn_evidence`). With template positions, a unit that matched nothing is found
-    again where a current unit none of whose faces matched fits it (:func:`_relocated`; method
-    ``template``). ``in_place``: :func:`still_in_place` of the result's baseline and current
-    poses, and ``cur_groups``: the current state's units (:func:`group_fiducials` on the current
-    poses, current indices), where the caller has them (computed here otherwise).
+    again where a current unit none of whose faces matched, or matched only on weak evidence,
+    fits it (:func:`_relocated`; method ``template``); a face so taken leaves the unit whose pair
+    held it. A unit measured through one pair that moved, whose faces fit the template before
+    and now, is measured by the template's two poses (:func:`_located_motion`). ``in_place``:
+    :func:`still_in_place` of the result's baseline and current poses, and ``cur_groups``: the
+    current state's units (:func:`group_fiducials` on the current poses, current indices),
+    where the caller has them (computed here otherwise).
 
     Returns
     -------
@@ -1080,17 +1083,25 @@ def fits_template(poses: Sequence[FiducialPose], template: UnitSpec) -> bool:
     position across the line of sight, where one image measures precisely (the fit's own
     5 mm RMS bound would let two faces misfit by 10 mm: too loose to call a fiducial a
     neighbour's face)."""
+    return _close_template_pose(poses, template) is not None
+
+
+def _close_template_pose(
+    poses: Sequence[FiducialPose], template: UnitSpec
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """:func:`template_pose` where it places every pose as :func:`fits_template` asks, else
+    None."""
     fit = template_pose(poses, template)
     if fit is None:
-        return False
+        return None
     R, t = fit
     for p in poses:
         if int(p.code) not in template.positions_mm:
-            return False
+            return None
         at = R @ np.asarray(template.positions_mm[int(p.code)], dtype=np.float64) + t
         if not seen_in_place(at, p.position_mm):
-            return False
-    return True
+            return None
+    return fit
 
 
 def still_in_place(
@@ -1271,7 +1282,8 @@ def _relocated(
     before now appear together where it went. Fiducial by fiducial there is no evidence; as a
     unit there is: the template fitted to those faces (:func:`template_pose`) says where each of
     the lost unit's old faces now is. Candidates are current units (``cur_groups``) of two or
-    more faces, all of them appeared, that the template fits, and baseline units with no
+    more faces, each appeared or only loosely held (:func:`_loosely_held`), that the template
+    fits, and baseline units with no
     same-code match, at most one cross-code one (which alone does not measure a unit) and no
     face still seen in place; the cost of a pair is the mean distance from the unit's old faces
     to where the fitted template puts them now, below ``limit_mm``, and the assignment is one to
@@ -1620,11 +1632,8 @@ def _located_motion(
         return None
     if float(np.linalg.norm(after[0] - before[0])) < LOCATED_MIN_MOVE_MM:
         return None
-    faces_before = [base[i] for i in ix]
-    faces_now = [cur[j] for j in current_indices]
-    if not (fits_template(faces_before, template) and fits_template(faces_now, template)):
-        return None
-    fit_before, fit_now = template_pose(faces_before, template), template_pose(faces_now, template)
+    fit_before = _close_template_pose([base[i] for i in ix], template)
+    fit_now = _close_template_pose([cur[j] for j in current_indices], template)
     if fit_before is None or fit_now is None:
         return None
     R = fit_now[0] @ fit_before[0].T
