@@ -45,6 +45,7 @@ from .units import (
     fits_template,
     learn_pair_distances,
     mirror_normals,
+    opposed_faces,
     places_every_code,
     seen_in_place,
     still_in_place,
@@ -72,6 +73,11 @@ TIE_DEPTH_MM = APART_IN_DEPTH_MM
 COVER_MM = 10.0
 #: ... and nearer the camera by this much plus three standard deviations of the two depths.
 COVER_DEPTH_MM = 5.0
+#: A current unit whose other faces all lie this far from a baseline unit's faces of their codes
+#: is not that unit seen in place through a face it shows there (:func:`_coherent_in_place`;
+#: on the 30 dolos fields such stand-ins' other faces lie 24-61 mm away, a still unit's posed
+#: off 16 mm).
+ELSEWHERE_MM = 20.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -361,6 +367,7 @@ def match_units(
                 gate_mm=gate_used,
                 tol_mm=rigid_gate_mm,
                 shown=in_place,
+                template=template,
             )
             for a in assigned:
                 for i in a.baseline_indices:
@@ -439,6 +446,7 @@ def assign_unit_groups(
     gate_mm: float,
     tol_mm: float,
     shown: dict[int, int] | None = None,
+    template: UnitSpec | None = None,
 ) -> list[GroupAssignment]:
     """Baseline units matched one to one to the current state's units, by their shared codes.
 
@@ -463,10 +471,16 @@ def assign_unit_groups(
     codes; 30 dolos-field seeds: still units counted displaced 5 -> 4). A baseline unit with a
     face still seen in place (:func:`.units.still_in_place`) did not move: it takes no part, and
     the current unit holding that face is its own, so no other unit may claim it; the mover
-    then gets the group it moved to. (A neighbour hidden entirely is not told apart from a
-    mover by the pairs' positions alone, nor a unit that moved straight towards the camera,
-    in front of its own old faces, from a mover come to rest there: the face counts and
-    lengths decide.) Units seen through one fiducial take part
+    then gets the group it moved to. A face another current unit shows in place does not count
+    so (:func:`_coherent_in_place`: a mover come to rest in front of a still unit's hidden face
+    would hold the still unit and keep the mover from its own faces). A unit may also have
+    turned over where it was: a group within the gate showing a face opposite to its old ones
+    and none of their codes is explained by it, saving the group's half gates less the distance
+    between the faces then and now (:func:`_turned_over_here`), so a unit turned over beside a
+    mover no longer takes the mover's group by a slightly shorter translation. (A neighbour
+    hidden entirely is not told apart from a mover by the pairs' positions alone, nor a unit
+    that moved straight towards the camera, in front of its own old faces, from a mover come to
+    rest there: the face counts and lengths decide.) Units seen through one fiducial take part
     with the groups holding its code, but their assignments are not returned (one face is weak
     evidence: the fiducial matching pairs it): they only keep a two-faced unit from a group that
     is theirs (a mover whose pair lands on a neighbour's new pair after a shorter motion than its
@@ -508,6 +522,10 @@ def assign_unit_groups(
     if shown is None:
         shown = still_in_place(baseline, current)
     group_of = {j: c for c, g in enumerate(cur_groups) for j in g}
+    if template is not None:
+        shown = _coherent_in_place(
+            baseline, current, base_units, cur_groups, group_of, shown, template
+        )
     still_units = {n for n, (_, ix) in enumerate(base_units) if any(i in shown for i in ix)}
     owned = {group_of[j] for j in shown.values() if j in group_of}
 
@@ -552,16 +570,21 @@ def assign_unit_groups(
     if not rows:
         return []
     ur = sorted(set(rows))
-    uc = sorted(set(cols))
+    # A baseline face not seen now is either hidden (behind a unit that may have come to rest in
+    # front of it: a candidate group's faces) or gone; a unit with a gone face is gone from its
+    # place, and only then do its faces cost their half gates.
+    occluders = list({j for c in set(cols) for j in cur_groups[c]})
+    turned = (
+        _turned_over_here(baseline, current, base_units, ur, cur_groups, owned, template, gate_mm)
+        if template is not None
+        else []
+    )
+    uc = sorted(set(cols) | {c for (_, c), _ in turned})
     rpos = {n: k for k, n in enumerate(ur)}
     cpos_k = {c: k for k, c in enumerate(uc)}
     # Square matrix with a no-match column per row so every unit may stay unassigned.
     big = 1e9
     cost = np.full((len(ur), len(uc) + len(ur)), big)
-    # A baseline face not seen now is either hidden (behind a unit that may have come to rest in
-    # front of it: a candidate group's faces) or gone; a unit with a gone face is gone from its
-    # place, and only then do its faces cost their half gates.
-    occluders = list({j for c in uc for j in cur_groups[c]})
     front = np.array([current[j].position_mm for j in occluders], dtype=np.float64)
     front_sd = np.array([current[j].sigma_mm[2] for j in occluders], dtype=np.float64)
     shared_faces = {i for pairs in shares for i, _ in pairs}
@@ -571,10 +594,17 @@ def assign_unit_groups(
         for t, pairs in zip(motions, shares, strict=True)
     ]
     cost[:, len(uc) :] = np.where(np.eye(len(ur), dtype=bool), 0.0, big)
+    # Turned over where it was: the faces opposite to its old ones it shows now are explained,
+    # each saving its half gate as in the matching, against the distance between the faces'
+    # centroids then and now (a unit turned over in place shows its other side within its own
+    # extent; a mover's neighbour that turned 30 mm away is no alternative to its own group).
+    for (n, c), x in turned:
+        cost[rpos[n], cpos_k[c]] = x - 0.5 * gate_mm * len(cur_groups[c])
     which: dict[tuple[int, int], int] = {}
     for k, (n, c, x) in enumerate(zip(rows, cols, costs, strict=True)):
-        cost[rpos[n], cpos_k[c]] = x
-        which[(rpos[n], cpos_k[c])] = k
+        if x < cost[rpos[n], cpos_k[c]]:
+            cost[rpos[n], cpos_k[c]] = x
+            which[(rpos[n], cpos_k[c])] = k
     ri, ci = linear_sum_assignment(cost)
     out: list[GroupAssignment] = []
     for r, c in zip(ri.tolist(), ci.tolist(), strict=True):
@@ -588,6 +618,95 @@ def assign_unit_groups(
                     _rigid_misfit(baseline, current, shares[hit]),
                 )
             )
+    return out
+
+
+def _turned_over_here(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    base_units: Sequence[tuple[str, list[int]]],
+    candidates: Sequence[int],
+    cur_groups: Sequence[list[int]],
+    owned: set[int],
+    template: UnitSpec,
+    gate_mm: float,
+) -> list[tuple[tuple[int, int], float]]:
+    """(baseline unit, current group) pairs where the unit may have turned over in place, with
+    the distance between their faces' centroids (mm).
+
+    The group shows none of the unit's old codes and at least one face whose template normal
+    points away from one the unit showed before, which only the unit turned over can show
+    (:func:`.units.opposed_faces`), within ``gate_mm`` of the unit's old faces.
+    """
+    out: list[tuple[tuple[int, int], float]] = []
+    if not cur_groups:
+        return out
+    centroids = np.array(
+        [np.mean([current[j].position_mm for j in g], axis=0) for g in cur_groups]
+    ).reshape(-1, 3)
+    tree = cKDTree(centroids)
+    for n in candidates:
+        ix = base_units[n][1]
+        codes = {int(baseline[i].code) for i in ix}
+        bpos = np.array([baseline[i].position_mm for i in ix], dtype=np.float64)
+        centre = bpos.mean(axis=0)
+        # A group's faces lie within the span of its centroid.
+        for c in tree.query_ball_point(centre, gate_mm + DEFAULT_SPAN_MM):
+            g = cur_groups[c]
+            now = {int(current[j].code) for j in g}
+            if c in owned or now & codes:
+                continue
+            if not any(opposed_faces(template, code, codes) for code in now):
+                continue
+            gpos = np.array([current[j].position_mm for j in g], dtype=np.float64)
+            if float(np.min(np.linalg.norm(bpos[:, None] - gpos[None], axis=2))) < gate_mm:
+                out.append(((n, c), float(np.linalg.norm(centroids[c] - centre))))
+    return sorted(out)
+
+
+def _coherent_in_place(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    base_units: Sequence[tuple[str, list[int]]],
+    cur_groups: Sequence[list[int]],
+    group_of: dict[int, int],
+    shown: dict[int, int],
+    template: UnitSpec,
+) -> dict[int, int]:
+    """``shown`` without faces seen in place by a current unit that is not theirs.
+
+    A face seen in place (:func:`.units.still_in_place`) stands for its unit unless the current
+    unit holding it is another one: its other faces of the baseline unit's codes all lie at
+    least :data:`ELSEWHERE_MM` from that unit's faces of those codes, and either it is a whole
+    unit (three or more faces fitting the template, :func:`.units.fits_template`) or those faces
+    of the baseline unit are seen in place by other current units. The face is then another
+    unit's of the same code that happens to lie within a few millimetres across the line of
+    sight: a mover come to rest in front of a still neighbour's hidden face, or a neighbour's
+    face uncovered where a mover's was (30 dolos fields: 9 of the 11 such faces, against 6 of
+    the 16,400 faces truly seen again in place, all of units grouped with a neighbour's face).
+    """
+    unit_of = {i: n for n, (_, ix) in enumerate(base_units) for i in ix}
+    out = dict(shown)
+    for i, j in shown.items():
+        if i not in unit_of or j not in group_of:
+            continue
+        group = cur_groups[group_of[j]]
+        codes = {int(baseline[k].code): k for k in base_units[unit_of[i]][1] if k != i}
+        others = [
+            (codes[int(current[g].code)], g)
+            for g in group
+            if g != j and int(current[g].code) in codes
+        ]
+        if not others or any(
+            np.linalg.norm(np.asarray(current[g].position_mm) - np.asarray(baseline[k].position_mm))
+            < ELSEWHERE_MM
+            for k, g in others
+        ):
+            continue
+        if all(shown.get(k) not in (None, *group) for k, _ in others) or (
+            len(group) >= 3 and fits_template([current[g] for g in group], template)
+        ):
+            del out[i]
     return out
 
 

@@ -1008,10 +1008,10 @@ def unit_motions(
         best, best_d = None, span
         for n, (_, ix) in enumerate(unit_list):
             codes_now = {int(cur[j].code) for j in cur_of[n]}
-            if code in codes_now or _opposed(template, code, codes_now):
+            if code in codes_now or opposed_faces(template, code, codes_now):
                 # A rigid unit cannot show a face and the one opposite it at once.
                 continue
-            if not cur_of[n] and _opposed(template, code, {int(base[i].code) for i in ix}):
+            if not cur_of[n] and opposed_faces(template, code, {int(base[i].code) for i in ix}):
                 # Turned over: only as the evidence above weighed it.
                 continue
             ref = [cur[j].position_mm for j in cur_of[n]] or [base[i].position_mm for i in ix]
@@ -1153,7 +1153,7 @@ def precise_depth(poses: Sequence[FiducialPose]) -> NDArray[np.bool_]:
     return finite & (sd <= PRECISE_DEPTH_RATIO * float(np.median(sd[finite])))
 
 
-def _opposed(template: UnitSpec | None, code: int, others: Any) -> bool:
+def opposed_faces(template: UnitSpec | None, code: int, others: Any) -> bool:
     """Whether the template face of ``code`` points away from that of any code in ``others``:
     by their normals, or a face the template lists as hidden against one with a normal."""
     if template is None:
@@ -1218,9 +1218,9 @@ def _overturn_evidence(
             # A lone cross-code partner is no evidence of what the unit shows (mostly a
             # stranger, see _motion_of_unit): it does not rule the face out.
             now = {int(cur[j].code) for j in cur_of[n] if j not in lone_cross}
-            if code in now or _opposed(template, code, now):
+            if code in now or opposed_faces(template, code, now):
                 continue
-            if not _opposed(template, code, {int(base[i].code) for i in ix}):
+            if not opposed_faces(template, code, {int(base[i].code) for i in ix}):
                 continue
             pos = np.array([base[i].position_mm for i in ix], dtype=np.float64)
             dist = float(np.min(np.linalg.norm(pos - d.after_mm, axis=1)))
@@ -1471,7 +1471,7 @@ def _motion_of_unit(
         # A face the template knows nothing of (neither normal nor hidden: a learned template
         # knows only the faces the baseline showed) is weighed as without normals.
         known = set(normals) | template.hidden
-        turned_over = any(_opposed(template, a, old_codes) for a in new_codes) or (
+        turned_over = any(opposed_faces(template, a, old_codes) for a in new_codes) or (
             len(ix) >= 2 and any(a not in known for a in new_codes)
         )
     elif turned_over:

@@ -878,3 +878,38 @@ def test_a_unit_seen_through_two_pairs_turns_by_its_true_rotation(
     assert np.linalg.norm(u.translation_mm - truth) < 0.5
     assert u.rotation_deg is not None and abs(u.rotation_deg - turn_deg) < 1.0
     assert u.status == "displaced" and summary.displaced_units == 1
+
+
+def test_a_strangers_face_seen_in_place_does_not_hold_a_mover() -> None:
+    """Recorded from an end-to-end dolos field (seed 21, everything within 80 mm of a still
+    unit): a unit moved 1.90 Dn, mostly towards the camera, and shows two of its three faces
+    again. Where its code-3 face was, a neighbour's code-3 face, uncovered by the move, now lies
+    within 3 mm across the line of sight (11 mm behind), and the mover's code-17 face came to
+    rest in front of the still unit's hidden one, so each unit looked seen in place by the
+    other's face. The current units holding those faces are whole units elsewhere (their other
+    faces 30-55 mm from the baseline unit's faces of those codes): they stand for neither. The
+    mover is displaced by its true motion (it was lost) and the still unit keeps its own faces."""
+    still, mover, _, doc = _recorded_still_and_mover("shown_by_stranger_seed21.json")
+    assert mover.status == "displaced"
+    err = np.asarray(mover.translation_mm) - np.asarray(doc["mover_true_translation_mm"])
+    assert np.linalg.norm(err) < 1.5
+    assert set(mover.current_indices) == set(doc["mover_current_indices"])
+    assert still.status == "still"
+    assert not set(still.current_indices) & set(doc["mover_current_indices"])
+
+
+def test_unit_turned_over_in_place_leaves_a_movers_faces_to_the_mover() -> None:
+    """Recorded from an end-to-end dolos field (seed 1, everything within 80 mm of a still
+    unit): a unit moved 1.95 Dn, mostly towards the camera, and came to rest in front of the
+    still unit's hidden code-3 face, showing three faces. A neighbour that turned over beside it
+    (its code-29 and code-3 faces gone, its code-41 face, opposite to code 29, shown 18 mm from
+    where they were) fits the mover's faces by a translation 3 mm shorter than the mover's own.
+    Turned over in place, the neighbour explains its new face: the mover keeps its faces and is
+    displaced by its true motion (it was lost), and the still unit keeps its face."""
+    still, mover, _, doc = _recorded_still_and_mover("turned_beside_mover_seed1.json")
+    assert mover.status == "displaced"
+    err = np.asarray(mover.translation_mm) - np.asarray(doc["mover_true_translation_mm"])
+    assert np.linalg.norm(err) < 1.5
+    assert set(mover.current_indices) == set(doc["mover_current_indices"])
+    assert still.status == "still"
+    assert not set(still.current_indices) & set(doc["mover_current_indices"])
