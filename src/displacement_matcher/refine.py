@@ -575,7 +575,9 @@ def assign_unit_groups(
     # place, and only then do its faces cost their half gates.
     occluders = list({j for c in set(cols) for j in cur_groups[c]})
     turned = (
-        _turned_over_here(baseline, current, base_units, ur, cur_groups, owned, template, gate_mm)
+        _turned_over_here(
+            baseline, current, base_units, ur, cur_groups, (cpos, tree), owned, template, gate_mm
+        )
         if template is not None
         else []
     )
@@ -627,6 +629,7 @@ def _turned_over_here(
     base_units: Sequence[tuple[str, list[int]]],
     candidates: Sequence[int],
     cur_groups: Sequence[list[int]],
+    centroids: tuple[NDArray[np.float64], cKDTree],
     owned: set[int],
     template: UnitSpec,
     gate_mm: float,
@@ -636,15 +639,11 @@ def _turned_over_here(
 
     The group shows none of the unit's old codes and at least one face whose template normal
     points away from one the unit showed before, which only the unit turned over can show
-    (:func:`.units.opposed_faces`), within ``gate_mm`` of the unit's old faces.
+    (:func:`.units.opposed_faces`), within ``gate_mm`` of the unit's old faces. ``centroids``:
+    the groups' centroids and their k-d tree.
     """
     out: list[tuple[tuple[int, int], float]] = []
-    if not cur_groups:
-        return out
-    centroids = np.array(
-        [np.mean([current[j].position_mm for j in g], axis=0) for g in cur_groups]
-    ).reshape(-1, 3)
-    tree = cKDTree(centroids)
+    cpos, tree = centroids
     for n in candidates:
         ix = base_units[n][1]
         codes = {int(baseline[i].code) for i in ix}
@@ -660,7 +659,7 @@ def _turned_over_here(
                 continue
             gpos = np.array([current[j].position_mm for j in g], dtype=np.float64)
             if float(np.min(np.linalg.norm(bpos[:, None] - gpos[None], axis=2))) < gate_mm:
-                out.append(((n, c), float(np.linalg.norm(centroids[c] - centre))))
+                out.append(((n, c), float(np.linalg.norm(cpos[c] - centre))))
     return sorted(out)
 
 

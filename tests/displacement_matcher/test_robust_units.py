@@ -880,6 +880,19 @@ def test_a_unit_seen_through_two_pairs_turns_by_its_true_rotation(
     assert u.status == "displaced" and summary.displaced_units == 1
 
 
+def _assert_mover_found_beside_still_unit(
+    still: UnitMotion, mover: UnitMotion, doc: dict[str, Any]
+) -> None:
+    """The mover of a recorded patch is displaced by its true motion with its own faces, and the
+    still unit stays, holding none of them."""
+    assert mover.status == "displaced"
+    err = np.asarray(mover.translation_mm) - np.asarray(doc["mover_true_translation_mm"])
+    assert np.linalg.norm(err) < 1.5
+    assert set(mover.current_indices) == set(doc["mover_current_indices"])
+    assert still.status == "still"
+    assert not set(still.current_indices) & set(doc["mover_current_indices"])
+
+
 def test_a_strangers_face_seen_in_place_does_not_hold_a_mover() -> None:
     """Recorded from an end-to-end dolos field (seed 21, everything within 80 mm of a still
     unit): a unit moved 1.90 Dn, mostly towards the camera, and shows two of its three faces
@@ -890,12 +903,7 @@ def test_a_strangers_face_seen_in_place_does_not_hold_a_mover() -> None:
     faces 30-55 mm from the baseline unit's faces of those codes): they stand for neither. The
     mover is displaced by its true motion (it was lost) and the still unit keeps its own faces."""
     still, mover, _, doc = _recorded_still_and_mover("shown_by_stranger_seed21.json")
-    assert mover.status == "displaced"
-    err = np.asarray(mover.translation_mm) - np.asarray(doc["mover_true_translation_mm"])
-    assert np.linalg.norm(err) < 1.5
-    assert set(mover.current_indices) == set(doc["mover_current_indices"])
-    assert still.status == "still"
-    assert not set(still.current_indices) & set(doc["mover_current_indices"])
+    _assert_mover_found_beside_still_unit(still, mover, doc)
 
 
 def test_unit_turned_over_in_place_leaves_a_movers_faces_to_the_mover() -> None:
@@ -907,9 +915,4 @@ def test_unit_turned_over_in_place_leaves_a_movers_faces_to_the_mover() -> None:
     Turned over in place, the neighbour explains its new face: the mover keeps its faces and is
     displaced by its true motion (it was lost), and the still unit keeps its face."""
     still, mover, _, doc = _recorded_still_and_mover("turned_beside_mover_seed1.json")
-    assert mover.status == "displaced"
-    err = np.asarray(mover.translation_mm) - np.asarray(doc["mover_true_translation_mm"])
-    assert np.linalg.norm(err) < 1.5
-    assert set(mover.current_indices) == set(doc["mover_current_indices"])
-    assert still.status == "still"
-    assert not set(still.current_indices) & set(doc["mover_current_indices"])
+    _assert_mover_found_beside_still_unit(still, mover, doc)
