@@ -183,9 +183,12 @@ class UnitMotion:
         ``rigid``: weighted Kabsch/Umeyama over >= 3 consistently matched fiducials, or over >= 2
         whose normals (before and after) fix the rotation, or, for one pair that moved, the
         template fitted to two or more faces in each state; ``translation``: otherwise, rotation
-        unknown (identity); ``template``: none of its faces matched, but the faces it shows now
-        were found together and the unit's template fitted to them (its motion is between the
-        template's poses before and now; translation only when one face located it before);
+        unknown (identity), except for one same-code pair that moved across the line of sight
+        of a unit whose baseline faces fit the template: measured at the unit's origin, turned
+        as the face's normal turned (the spin about it unseen); ``template``: none of its faces
+        matched, but the faces it shows now were found together and the unit's template fitted
+        to them (its motion is between the template's poses before and now; translation only
+        when one face located it before);
         ``none``: nothing to measure (``status`` says why).
     rotation : (3, 3) ndarray
         Rotation, camera frame (identity when unknown).
@@ -197,7 +200,8 @@ class UnitMotion:
         The reference point in the baseline: the unit's own origin when the unit map's template
         locates it (template fitted to the unit's baseline fiducials), else the centroid of its
         baseline fiducials for a rigid fit, of its matched ones for a translation (the mean of
-        their displacements is then exactly the centroid's, whatever the rotation).
+        their displacements is then exactly the centroid's, whatever the rotation; the unit's
+        origin where the template places it).
     residual_mm : float
         RMS residual of the rigid fit, mm (0 for fewer than 3 fiducials).
     status : {"still", "moved", "displaced", "overturned", "lost", "unseen"}

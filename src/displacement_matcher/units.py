@@ -890,7 +890,9 @@ def unit_motions(
     again where a current unit none of whose faces matched, or matched only on weak evidence,
     fits it (:func:`_relocated`; method ``template``); a face so taken leaves the unit whose pair
     held it. A unit measured through one pair that moved, whose faces fit the template before
-    and now, is measured by the template's two poses (:func:`_located_motion`). ``in_place``:
+    and now, is measured by the template's two poses (:func:`_located_motion`); one whose faces
+    fit it only before, at the origin the template places, turned as its face's normal turned
+    (:func:`_centred_motion`). ``in_place``:
     :func:`still_in_place` of the result's baseline and current poses, and ``cur_groups``: the
     current state's units (:func:`group_fiducials` on the current poses, current indices),
     where the caller has them (computed here otherwise).
@@ -1578,6 +1580,15 @@ def _motion_of_unit(
             resid = rms_misfit(R, t, before, after)
             rot_deg = _rotation_deg(R)
             method = "rigid"
+        elif len(same) == 1:
+            centred = _centred_motion(ix, same[0], base, cur, template)
+            if centred is not None:
+                # One pair measures its face's motion; the unit's origin, 18 mm behind the face
+                # of a dolos, turns with the unit: where the template places the origin before
+                # and the face's normal turns it now, the unit's own motion is measured there
+                # (30 end-to-end fields: one-pair units' distance error sd 2.3-2.8 -> ~1 mm).
+                R, ref, trans = centred
+                rot_deg = _rotation_deg(R)
     overturned = turned_over or (rot_deg is not None and rot_deg >= overturn_deg)
     return UnitMotion(
         name,
@@ -1609,6 +1620,68 @@ LOCATED_PAIR_TOL_MM = 0.5
 #: further, is more likely a still unit whose hidden face took a mover's (the dolos fields' movers
 #: turn up to 30 deg; one still unit, seed 9, came out turned 74 deg and displaced).
 LOCATED_MAX_TURN_DEG = 45.0
+
+
+#: The two branches of a face's normal now must turn it by angles this far apart (deg) for the
+#: nearer to say how it turned (:func:`_centred_motion`).
+CENTRED_BRANCH_MARGIN_DEG = 10.0
+
+
+def _centred_motion(
+    ix: Sequence[int],
+    pair: Any,
+    base: tuple[FiducialPose, ...],
+    cur: tuple[FiducialPose, ...],
+    template: UnitSpec | None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None:
+    """``(R, origin, translation)`` of a unit measured through one same-code pair, at the unit's
+    origin: the template fitted to its baseline faces (two or more, :func:`fits_template`)
+    places the origin, and the turn of the pair's face normal (the smallest rotation from the
+    template's normal of the face before to its normal now, on the nearer branch) carries it.
+
+    The spin about the face's normal is not seen and is taken as none. None where the face
+    moved less than :data:`LOCATED_MIN_MOVE_MM` across the line of sight (a still unit's depth
+    outlier stays measured at its face, where only its lateral motion is confirmed), the
+    baseline faces do not fit, the two branches of the normal now turn it within
+    :data:`CENTRED_BRANCH_MARGIN_DEG` of each other (a face seen nearly along its line of sight
+    before: which way it turned is not told), or the normal turned
+    :data:`LOCATED_MAX_TURN_DEG` or more.
+    """
+    if template is None or len(ix) < 2:
+        return None
+    code = int(base[pair.baseline_index].code)
+    if code not in template.positions_mm or code not in template.normals:
+        return None
+    before = np.asarray(pair.before_mm, dtype=np.float64)
+    after = np.asarray(pair.after_mm, dtype=np.float64)
+    lateral = across_line_of_sight(after - before, before)
+    if float(np.linalg.norm(lateral)) < LOCATED_MIN_MOVE_MM:
+        return None
+    fit = _close_template_pose([base[i] for i in ix], template)
+    n_now = unit_normals([cur[pair.current_index]])
+    if fit is None or n_now is None:
+        return None
+    Rb, origin = fit
+    n_before = Rb @ np.asarray(template.normals[code], dtype=np.float64)
+    branches = np.vstack([n_now, mirror_normals(after[None], n_now)])
+    turns = np.degrees(np.arccos(np.clip(branches @ n_before, -1.0, 1.0)))
+    if abs(float(turns[0] - turns[1])) < CENTRED_BRANCH_MARGIN_DEG:
+        return None  # which way the face turned is not told: each branch as near
+    n_after = branches[int(np.argmin(turns))]
+    R = _smallest_rotation(n_before, n_after)
+    if _rotation_deg(R) >= LOCATED_MAX_TURN_DEG:
+        return None
+    return R, origin, after + R @ (origin - before) - origin
+
+
+def _smallest_rotation(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rotation turning unit vector ``a`` onto unit vector ``b`` about their common normal."""
+    v = np.cross(a, b)
+    c = float(a @ b)
+    if float(np.linalg.norm(v)) < 1e-12:
+        return np.eye(3)
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.asarray(np.eye(3) + vx + vx @ vx / (1.0 + c), dtype=np.float64)
 
 
 def _located_motion(
