@@ -1668,15 +1668,15 @@ def _centred_motion(
     turns = np.degrees(np.arccos(np.clip(branches @ n_before, -1.0, 1.0)))
     if abs(float(turns[0] - turns[1])) < CENTRED_BRANCH_MARGIN_DEG:
         return None  # which way the face turned is not told: each branch as near
-    n_after = branches[int(np.argmin(turns))]
-    R = _smallest_rotation(n_before, n_after)
-    if _rotation_deg(R) >= LOCATED_MAX_TURN_DEG:
+    if float(np.min(turns)) >= LOCATED_MAX_TURN_DEG:
         return None
+    R = _smallest_rotation(n_before, branches[int(np.argmin(turns))])
     return R, origin, after + R @ (origin - before) - origin
 
 
 def _smallest_rotation(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The rotation turning unit vector ``a`` onto unit vector ``b`` about their common normal."""
+    """The rotation turning unit vector ``a`` onto unit vector ``b`` about their common normal
+    (Rodrigues' formula; ``b`` not opposite to ``a``)."""
     v = np.cross(a, b)
     c = float(a @ b)
     if float(np.linalg.norm(v)) < 1e-12:
