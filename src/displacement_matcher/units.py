@@ -1581,11 +1581,11 @@ def _motion_of_unit(
             rot_deg = _rotation_deg(R)
             method = "rigid"
         elif len(same) == 1:
-            centred = _centred_motion(ix, same[0], base, cur, template)
+            centred = _centred_motion(ix, current_indices, same[0], base, cur, template)
             if centred is not None:
                 # One pair measures its face's motion; the unit's origin, 18 mm behind the face
-                # of a dolos, turns with the unit: where the template places the origin before
-                # and the face's normal turns it now, the unit's own motion is measured there
+                # of a dolos, turns with the unit: where the template places the origin in one
+                # state and the face's normal turns it, the unit's own motion is measured there
                 # (30 end-to-end fields: moved one-pair units' distance error, median absolute
                 # deviation 1.1-1.9 -> 0.75-1.0 mm).
                 R, ref, trans = centred
@@ -1630,25 +1630,26 @@ CENTRED_BRANCH_MARGIN_DEG = 10.0
 
 def _centred_motion(
     ix: Sequence[int],
+    current_indices: Sequence[int],
     pair: Any,
     base: tuple[FiducialPose, ...],
     cur: tuple[FiducialPose, ...],
     template: UnitSpec | None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None:
     """``(R, origin, translation)`` of a unit measured through one same-code pair, at the unit's
-    origin: the template fitted to its baseline faces (two or more, :func:`fits_template`)
-    places the origin, and the turn of the pair's face normal (the smallest rotation from the
-    template's normal of the face before to its normal now, on the nearer branch) carries it.
+    origin: the template fitted to its faces in one state (two or more, :func:`fits_template`;
+    the baseline's first) places the origin there, and the turn of the pair's face normal (the
+    smallest rotation between the template's normal of the face and the face's measured normal
+    in the other state, on the nearer branch) carries it to the other state.
 
     The spin about the face's normal is not seen and is taken as none. None where the face
     moved less than :data:`LOCATED_MIN_MOVE_MM` across the line of sight (a still unit's depth
-    outlier stays measured at its face, where only its lateral motion is confirmed), the
-    baseline faces do not fit, the two branches of the normal now turn it within
-    :data:`CENTRED_BRANCH_MARGIN_DEG` of each other (a face seen nearly along its line of sight
-    before: which way it turned is not told), or the normal turned
-    :data:`LOCATED_MAX_TURN_DEG` or more.
+    outlier stays measured at its face, where only its lateral motion is confirmed), the faces
+    fit in neither state, the two branches of the measured normal turn it within
+    :data:`CENTRED_BRANCH_MARGIN_DEG` of each other (a face seen nearly along its line of sight:
+    which way it turned is not told), or the normal turned :data:`LOCATED_MAX_TURN_DEG` or more.
     """
-    if template is None or len(ix) < 2:
+    if template is None:
         return None
     code = int(base[pair.baseline_index].code)
     if code not in template.positions_mm or code not in template.normals:
@@ -1658,19 +1659,35 @@ def _centred_motion(
     lateral = across_line_of_sight(after - before, before)
     if float(np.linalg.norm(lateral)) < LOCATED_MIN_MOVE_MM:
         return None
-    fit = _close_template_pose([base[i] for i in ix], template)
-    n_now = unit_normals([cur[pair.current_index]])
-    if fit is None or n_now is None:
+    local = np.asarray(template.normals[code], dtype=np.float64)
+    fit = _close_template_pose([base[i] for i in ix], template) if len(ix) >= 2 else None
+    placed_before = fit is not None
+    if fit is None and len(current_indices) >= 2:
+        fit = _close_template_pose([cur[j] for j in current_indices], template)
+    if fit is None:
         return None
-    Rb, origin = fit
-    n_before = Rb @ np.asarray(template.normals[code], dtype=np.float64)
-    branches = np.vstack([n_now, mirror_normals(after[None], n_now)])
-    turns = np.degrees(np.arccos(np.clip(branches @ n_before, -1.0, 1.0)))
+    placed = fit[0] @ local
+    # Placed before, the measured normal now is where the face turned to; placed now, the
+    # measured normal before is where it turned from.
+    seen, at = (
+        (cur[pair.current_index], after) if placed_before else (base[pair.baseline_index], before)
+    )
+    measured = unit_normals([seen])
+    if measured is None:
+        return None
+    branches = np.vstack([measured, mirror_normals(at[None], measured)])
+    turns = np.degrees(np.arccos(np.clip(branches @ placed, -1.0, 1.0)))
     if abs(float(turns[0] - turns[1])) < CENTRED_BRANCH_MARGIN_DEG:
         return None  # which way the face turned is not told: each branch as near
     if float(np.min(turns)) >= LOCATED_MAX_TURN_DEG:
         return None
-    R = _smallest_rotation(n_before, branches[int(np.argmin(turns))])
+    nearer = branches[int(np.argmin(turns))]
+    if placed_before:
+        R, origin = _smallest_rotation(placed, nearer), fit[1]
+    else:
+        # The origin before is where the turn back from the face puts the origin now.
+        R = _smallest_rotation(nearer, placed)
+        origin = before + R.T @ (fit[1] - after)
     return R, origin, after + R @ (origin - before) - origin
 
 

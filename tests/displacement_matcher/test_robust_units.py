@@ -795,14 +795,17 @@ def test_unit_through_one_pair_is_measured_by_its_template_in_both_states(turn_d
     assert unit.rotation_deg == pytest.approx(turn_deg, abs=1.0)
 
 
+@pytest.mark.parametrize("two_faces", ["before", "after"])
 @pytest.mark.parametrize("turn_deg", [0.0, 25.0])
-def test_unit_through_one_face_now_is_measured_at_its_origin(turn_deg: float) -> None:
-    """A unit shows codes 3 and 29 before the run and only 29 after moving 25 mm and turning
-    about an axis across that face's normal: one same-code pair, one face now. Its offset is
-    the face's motion, which the turn carries several mm from the unit's own; the template
-    fitted to the two faces before places the unit's origin, and the face normal's turn carries
-    it, so the unit's motion is measured at its origin (the spin about the normal, which one
-    face does not show, is none here)."""
+def test_unit_through_one_pair_seen_whole_once_is_measured_at_its_origin(
+    turn_deg: float, two_faces: str
+) -> None:
+    """A unit moves 25 mm, turning about an axis across its code-29 face's normal, and shows
+    that face in both states and one more face (code 3) in one of them: one same-code pair.
+    Its offset is the face's motion, which the turn carries several mm from the unit's own;
+    the template fitted to the two faces places the unit's origin in that state, and the face
+    normal's turn carries it to the other, so the unit's motion is measured at its origin (the
+    spin about the normal, which one face does not show, is none here)."""
     centre = np.array([20.0, -10.0, 1800.0])
     move = np.array([15.0, -12.0, 14.0])
     # Slanted 35 deg to the camera (seen along its line of sight, the face's two normal branches
@@ -810,10 +813,15 @@ def test_unit_through_one_face_now_is_measured_at_its_origin(turn_deg: float) ->
     tilted = rotation([1.0, 0.0, 0.0], 35.0) @ R0
     normal = tilted @ np.array([0.0, 0.0, 1.0])  # code 29's
     turn = rotation(list(np.cross(normal, [0.0, 1.0, 0.0])), turn_deg)  # across it
-    before = [p for p in _unit(centre, tilted) if p.code in (3, 29)]
-    after = [p for p in _unit(centre + move, turn @ tilted) if p.code == 29]
-    assert sorted(p.code for p in before) == [3, 29] and len(after) == 1
-    face_move = after[0].position_mm - next(p for p in before if p.code == 29).position_mm
+    codes_before = (3, 29) if two_faces == "before" else (29,)
+    codes_after = (29,) if two_faces == "before" else (3, 29)
+    before = [p for p in _unit(centre, tilted) if p.code in codes_before]
+    after = [p for p in _unit(centre + move, turn @ tilted) if p.code in codes_after]
+    assert len(before) == len(codes_before) and len(after) == len(codes_after)
+    face_move = (
+        next(p for p in after if p.code == 29).position_mm
+        - next(p for p in before if p.code == 29).position_mm
+    )
     if turn_deg:
         assert np.linalg.norm(face_move - move) > 5.0  # the pair alone would be this far off
     an = match_units(before, after, unit_map=UMAP, gate_mm=50.0)
