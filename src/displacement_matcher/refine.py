@@ -600,13 +600,13 @@ def assign_unit_groups(
     # each saving its half gate as in the matching, against the distance between the faces'
     # centroids then and now (a unit turned over in place shows its other side within its own
     # extent; a mover's neighbour that turned 30 mm away is no alternative to its own group).
+    # (Its cells are not shared pairs' cells: it shows none of the unit's codes.)
     for (n, c), x in turned:
         cost[rpos[n], cpos_k[c]] = x - 0.5 * gate_mm * len(cur_groups[c])
     which: dict[tuple[int, int], int] = {}
     for k, (n, c, x) in enumerate(zip(rows, cols, costs, strict=True)):
-        if x < cost[rpos[n], cpos_k[c]]:
-            cost[rpos[n], cpos_k[c]] = x
-            which[(rpos[n], cpos_k[c])] = k
+        cost[rpos[n], cpos_k[c]] = x
+        which[(rpos[n], cpos_k[c])] = k
     ri, ci = linear_sum_assignment(cost)
     out: list[GroupAssignment] = []
     for r, c in zip(ri.tolist(), ci.tolist(), strict=True):
@@ -660,7 +660,7 @@ def _turned_over_here(
             gpos = np.array([current[j].position_mm for j in g], dtype=np.float64)
             if float(np.min(np.linalg.norm(bpos[:, None] - gpos[None], axis=2))) < gate_mm:
                 out.append(((n, c), float(np.linalg.norm(cpos[c] - centre))))
-    return sorted(out)
+    return out
 
 
 def _coherent_in_place(
