@@ -881,21 +881,21 @@ def unit_motions(
 
     Units come from :func:`assign_units` (or ``groups``, its earlier result). ``centres`` caches
     each unit's template-located origin across calls on the same baseline (filled in here).
-    Appeared current fiducials are attached to the nearest unit that already has current
-    fiducials (or lost all of them) when their code is free on it and its face does not point
-    away from one the unit shows, within the unit span. A face pointing away from faces a unit
-    showed before (with template normals) is evidence that the unit turned over: such faces go
-    one to one, within the matching gate, to units that lost all their old faces
-    (:func:`_overturn_evidence`). With template positions, a unit that matched nothing is found
-    again where a current unit none of whose faces matched, or matched only on weak evidence,
-    fits it (:func:`_relocated`; method ``template``); a face so taken leaves the unit whose pair
-    held it. A unit measured through one pair that moved, whose faces fit the template before
-    and now, is measured by the template's two poses (:func:`_located_motion`); one whose faces
-    fit it only before, at the origin the template places, turned as its face's normal turned
-    (:func:`_centred_motion`). ``in_place``:
-    :func:`still_in_place` of the result's baseline and current poses, and ``cur_groups``: the
-    current state's units (:func:`group_fiducials` on the current poses, current indices),
-    where the caller has them (computed here otherwise).
+    Appeared current fiducials are attached to the nearest unit that already has current fiducials
+    (or lost all of them) when their code is free on it and its face does not point away from one
+    the unit shows, within the unit span. A face pointing away from faces a unit showed before (with
+    template normals) is evidence that the unit turned over: such faces go one to one, within the
+    matching gate, to units that lost all their old faces (:func:`_overturn_evidence`; a unit that
+    matched nothing is not held by a face seen in place that the matching gave another baseline face
+    of its code). With template positions, a unit that matched nothing is found again where a
+    current unit none of whose faces matched, or matched only on weak evidence, fits it
+    (:func:`_relocated`; method ``template``); a face so taken leaves the unit whose pair held it. A
+    unit measured through one pair that moved, whose faces fit the template before and now, is
+    measured by the template's two poses (:func:`_located_motion`); one whose faces fit it only
+    before, at the origin the template places, turned as its face's normal turned
+    (:func:`_centred_motion`). ``in_place``: :func:`still_in_place` of the result's baseline and
+    current poses, and ``cur_groups``: the current state's units (:func:`group_fiducials` on the
+    current poses, current indices), where the caller has them (computed here otherwise).
 
     Returns
     -------
@@ -947,6 +947,19 @@ def unit_motions(
         shown = still_in_place(base, cur) if in_place is None else in_place
     if owner_codes is None and template is not None and (normals or template.hidden):
         # Faces opposite to those a unit showed first: they can only be an overturned unit's.
+        # A face seen in place holds a unit that matched nothing only if it is not another
+        # face's same-code partner: a neighbour's face come to rest where the unit's was is
+        # the neighbour's (30 dolos-field seeds: a unit turned over in place held so, 1 of 1).
+        partner = {
+            d.current_index: d.baseline_index
+            for d in result.displacements
+            if d.label == "same_code"
+        }
+        held = {
+            i: j
+            for i, j in shown.items()
+            if i not in unit_of_b or partner.get(j, i) == i or pairs_of[unit_of_b[i]]
+        }
         for d, n in _overturn_evidence(
             appeared,
             unit_list,
@@ -956,7 +969,7 @@ def unit_motions(
             has_same,
             template,
             result.params.gate_mm,
-            shown,
+            held,
         ):
             cur_of[n].append(d.current_index)
             appeared_of[n] += 1

@@ -953,3 +953,23 @@ def test_unit_turned_over_in_place_leaves_a_movers_faces_to_the_mover() -> None:
     displaced by its true motion (it was lost), and the still unit keeps its face."""
     still, mover, _, doc = _recorded_still_and_mover("turned_beside_mover_seed1.json")
     _assert_mover_found_beside_still_unit(still, mover, doc)
+
+
+def test_unit_turned_over_in_place_is_not_held_by_a_neighbours_face_where_its_was() -> None:
+    """Recorded from an end-to-end dolos field (seed 7, everything within 80 mm of a unit that
+    turned over in place): the unit showed three faces (codes 17, 3 and 29) and now shows only
+    its code-41 face, opposite to them, 9 mm from its old code-29 face. A neighbour moved 7 mm
+    and its code-17 face came to rest within 3 mm (across the line of sight) of where the
+    turned unit's code-17 face was, so that face looked still seen in place. The neighbour's
+    face is matched to the neighbour's own old face, so it holds nothing for a unit that matched
+    nothing: the new face is evidence that the unit turned over, and it is counted displaced;
+    the neighbour keeps its faces and is not."""
+    _, units, summary, doc = _recorded("turned_over_face_shown_seed7.json")
+    turned = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    neighbour = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    assert turned.overturned
+    assert turned.status == "overturned"
+    assert set(doc["unit_current_indices"]) <= set(turned.current_indices)
+    assert set(neighbour.current_indices) == set(doc["mover_current_indices"])
+    assert neighbour.status != "displaced"
+    assert summary.displaced_units == doc["true_displaced_units"]
