@@ -1197,13 +1197,13 @@ def _overturn_evidence(
 ) -> list[tuple[Any, int]]:
     """Appeared faces opposite to those a unit showed, given one to one to the units they fit.
 
-    A face now seen whose template normal points away from the faces a unit showed before can
-    only be that unit's if it turned over, and the unit must then show none of its old faces (no
-    same-code match) nor a face that contradicts it. A unit that turned over also moved, often
-    beyond the grouping span, so the candidates are all such units within the matching gate,
-    and each face and each unit is used once: a minimum-cost assignment on the distance from the
-    unit's baseline fiducials (several nearby units may have lost their faces, an overturned one
-    among them; the nearest fit wins as a whole, not greedily).
+    A face now seen whose template normal points away from the faces a unit showed before can only
+    be that unit's if it turned over, and the unit must then show none of its old faces (no
+    same-code match), nor a face that contradicts it, nor one of that code already. A unit that
+    turned over also moved, often beyond the grouping span, so the candidates are all such units
+    within the matching gate, and each face and each unit is used once: a minimum-cost assignment on
+    the distance from the unit's baseline fiducials (several nearby units may have lost their faces,
+    an overturned one among them; the nearest fit wins as a whole, not greedily).
 
     Returns
     -------
@@ -1233,7 +1233,11 @@ def _overturn_evidence(
             # A lone cross-code partner is no evidence of what the unit shows (mostly a
             # stranger, see _motion_of_unit): it does not rule the face out.
             now = {int(cur[j].code) for j in cur_of[n] if j not in lone_cross}
-            if code in now or opposed_faces(template, code, now):
+            if opposed_faces(template, code, now):
+                continue
+            if any(int(cur[j].code) == code for j in cur_of[n]):
+                # One face per code: a unit whose pair (even a lone cross-code one) shows this
+                # code already holds no second face of it.
                 continue
             if not opposed_faces(template, code, {int(base[i].code) for i in ix}):
                 continue

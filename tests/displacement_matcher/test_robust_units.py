@@ -973,3 +973,22 @@ def test_unit_turned_over_in_place_is_not_held_by_a_neighbours_face_where_its_wa
     assert set(neighbour.current_indices) == set(doc["mover_current_indices"])
     assert neighbour.status != "displaced"
     assert summary.displaced_units == doc["true_displaced_units"]
+
+
+def test_unit_holding_a_code_through_a_cross_code_pair_takes_no_second_face_of_it() -> None:
+    """Recorded from an end-to-end dolos field (seed 0, everything within 80 mm of a unit that
+    turned over): two neighbouring units turned over. One showed three faces and now shows only
+    its code-41 face, opposite to them; the other's code-29 face is matched across codes to its
+    own code-41 face. The new code-41 face is 1.5 mm nearer the second unit's old faces, but a
+    unit carries one face of each code: the second already shows code 41 through its pair, so
+    the face is the first unit's evidence, and both units are counted as turned over."""
+    _, units, summary, doc = _recorded("two_turned_one_code_seed0.json")
+    first = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    second = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    for unit in (first, second):
+        assert unit.overturned
+        codes = [int(doc["current"][j]["code"]) for j in unit.current_indices]
+        assert len(codes) == len(set(codes))
+    assert set(doc["unit_current_indices"]) <= set(first.current_indices)
+    assert set(second.current_indices) == set(doc["mover_current_indices"])
+    assert summary.displaced_units == doc["true_displaced_units"]
