@@ -156,15 +156,16 @@ def match_units(
     elsewhere than its own matches do, its fiducials are predicted there (translation gate), and the
     pairs other units made into that group are ruled out. Faces still seen where they were (across
     the line of sight, where one image measures precisely) outweigh pairs that moved: a unit most of
-    whose faces are in place (or one, at its depth too, against one pair that moved) is looked
-    for there, and so is a unit measured through one pair that moved while a face of its code
-    is in place. A lone pair is ruled out where its fiducial is
-    another unit's face, by that unit's own matches (:func:`_contested_lone_pairs`; where that unit
-    is itself measured through one pair, by the rotation its pair's normals and the fiducial's own
-    fix, :func:`_turned_onto`) or by the template fitted to a still neighbour's faces
-    (:func:`_neighbour_faces_taken`), or where the unit shows now, in place, a face it hid before
-    (:func:`_hidden_face_shown`). A unit none of whose faces matched is found again where the faces
-    it shows now, none matched either (or only on weak evidence), fit the template
+    whose faces are in place (or one, at its depth too, against one pair that moved) is looked for
+    there, and so is a unit measured through one pair that moved while a face of its code is in
+    place. A lone pair is ruled out where its fiducial is another unit's face, by that unit's own
+    matches (:func:`_contested_lone_pairs`; where that unit is itself measured through one pair, by
+    the rotation its pair's normals and the fiducial's own fix, :func:`_turned_onto`) or by the
+    template fitted to a still neighbour's faces (:func:`_neighbour_faces_taken`), or where the unit
+    shows now, in place, a face it hid before (:func:`_hidden_face_shown`), or where the current
+    unit it moved into holds, by the template, another of its unit's faces where that face was
+    (:func:`_pair_into_unit_at_rest`). A unit none of whose faces matched is found again where the
+    faces it shows now, none matched either (or only on weak evidence), fit the template
     (:func:`.units.unit_motions`); other units' pairs into those faces are then ruled out and its
     old faces are looked for where the template puts them. Each pass is still one exact global
     matching.
@@ -292,6 +293,8 @@ def match_units(
             else set()
         )
         covered |= {i for i, _ in shown_in_place}
+        if template is not None and cur_groups:
+            covered |= _pair_into_unit_at_rest(baseline, current, units, lone, cur_groups, template)
         excluded |= shown_in_place
         for u in units:
             if u.method == "template":
@@ -1007,6 +1010,56 @@ def _still_neighbours_faces(
             if _lacks_code_near(faces, int(p.code), pos, span_mm) and seen_in_place(
                 R @ local + t, pos
             ):
+                out.add(i)
+                break
+    return out
+
+
+def _pair_into_unit_at_rest(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    units: Sequence[UnitMotion],
+    lone: dict[int, int],
+    cur_groups: Sequence[list[int]],
+    template: UnitSpec,
+) -> set[int]:
+    """Lone pairs that moved into a current unit which holds another of their unit's faces
+    where it was.
+
+    A unit is one rigid body: where its one pair moved into a current unit of two or more faces
+    that fit the template, that unit's pose says where the pair's unit's other faces are now. If
+    one of them (a code the current unit does not show) is then where it was before (within
+    :data:`STILL_SHOWN_MM` across the line of sight) while the pair moved, the two cannot be
+    one body's: the baseline unit joined two neighbours' faces (a grouping that fits the
+    template by chance), and the pair's face is the stranger's, come to rest in the still
+    unit's place or gone. Returns the baseline indices of such pairs."""
+    out: set[int] = set()
+    if not lone:
+        return out
+    group_of = {j: c for c, g in enumerate(cur_groups) for j in g}
+    unit_of = {i: u for u in units for i in u.baseline_indices}
+    fits: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]] | None] = {}
+    for i, j in lone.items():
+        c, unit = group_of.get(j), unit_of.get(i)
+        if c is None or unit is None or len(cur_groups[c]) < 2:
+            continue
+        if seen_in_place(current[j].position_mm, baseline[i].position_mm):
+            continue
+        group = cur_groups[c]
+        if c not in fits:
+            faces = [current[k] for k in group]
+            fits[c] = template_pose(faces, template) if fits_template(faces, template) else None
+        fit = fits[c]
+        if fit is None:
+            continue
+        R, t = fit
+        shown_codes = {int(current[k].code) for k in group}
+        for k in unit.baseline_indices:
+            code = int(baseline[k].code)
+            if k == i or code in shown_codes or code not in template.positions_mm:
+                continue
+            at = R @ np.asarray(template.positions_mm[code], dtype=np.float64) + t
+            if seen_in_place(at, baseline[k].position_mm):
                 out.add(i)
                 break
     return out

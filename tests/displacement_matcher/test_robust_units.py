@@ -992,3 +992,20 @@ def test_unit_holding_a_code_through_a_cross_code_pair_takes_no_second_face_of_i
     assert set(doc["unit_current_indices"]) <= set(first.current_indices)
     assert set(second.current_indices) == set(doc["mover_current_indices"])
     assert summary.displaced_units == doc["true_displaced_units"]
+
+
+def test_pair_into_a_unit_that_holds_another_face_where_it_was_is_a_strangers() -> None:
+    """Recorded from an end-to-end dolos field (seed 23, everything within 110 mm of a still
+    unit): the still unit showed one face before the run (code 17), which the baseline grouped
+    with a neighbour's code-29 face (the two fit the template by chance). The neighbour turned
+    over in place and now shows only its code-41 face; the still unit, uncovered, shows its
+    code-29 and code-3 faces, and the group's code-29 face paired with that code-29 face 36 mm
+    away. Fitted to the still unit's two faces, the template puts its code-17 face where the
+    group's was: one rigid body cannot have moved one face 36 mm and left the other, so the
+    pair is looked for where it was, and the group is the turned neighbour's, holding none of
+    the still unit's faces."""
+    _, units, _, doc = _recorded("mixed_group_seed23.json")
+    mixed = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    assert mixed.overturned
+    assert set(mixed.current_indices) == set(doc["mover_current_indices"])
+    assert not set(mixed.current_indices) & set(doc["unit_current_indices"])
