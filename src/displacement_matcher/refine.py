@@ -41,6 +41,7 @@ from .units import (
     UnitSpec,
     assign_units,
     branch_fit,
+    close_template_pose,
     faces_shown_in_place,
     fits_template,
     learn_pair_distances,
@@ -1047,8 +1048,7 @@ def _pair_into_unit_at_rest(
             continue
         group = cur_groups[c]
         if c not in fits:
-            faces = [current[k] for k in group]
-            fits[c] = template_pose(faces, template) if fits_template(faces, template) else None
+            fits[c] = close_template_pose([current[k] for k in group], template)
         fit = fits[c]
         if fit is None:
             continue

@@ -1098,10 +1098,10 @@ def fits_template(poses: Sequence[FiducialPose], template: UnitSpec) -> bool:
     position across the line of sight, where one image measures precisely (the fit's own
     5 mm RMS bound would let two faces misfit by 10 mm: too loose to call a fiducial a
     neighbour's face)."""
-    return _close_template_pose(poses, template) is not None
+    return close_template_pose(poses, template) is not None
 
 
-def _close_template_pose(
+def close_template_pose(
     poses: Sequence[FiducialPose], template: UnitSpec
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
     """:func:`template_pose` where it places every pose as :func:`fits_template` asks, else
@@ -1677,10 +1677,10 @@ def _centred_motion(
     if float(np.linalg.norm(lateral)) < LOCATED_MIN_MOVE_MM:
         return None
     local = np.asarray(template.normals[code], dtype=np.float64)
-    fit = _close_template_pose([base[i] for i in ix], template) if len(ix) >= 2 else None
+    fit = close_template_pose([base[i] for i in ix], template) if len(ix) >= 2 else None
     placed_before = fit is not None
     if fit is None and len(current_indices) >= 2:
-        fit = _close_template_pose([cur[j] for j in current_indices], template)
+        fit = close_template_pose([cur[j] for j in current_indices], template)
     if fit is None:
         return None
     placed = fit[0] @ local
@@ -1740,8 +1740,8 @@ def _located_motion(
         return None
     if float(np.linalg.norm(after[0] - before[0])) < LOCATED_MIN_MOVE_MM:
         return None
-    fit_before = _close_template_pose([base[i] for i in ix], template)
-    fit_now = _close_template_pose([cur[j] for j in current_indices], template)
+    fit_before = close_template_pose([base[i] for i in ix], template)
+    fit_now = close_template_pose([cur[j] for j in current_indices], template)
     if fit_before is None or fit_now is None:
         return None
     R = fit_now[0] @ fit_before[0].T
