@@ -699,6 +699,7 @@ def fit_design_circles(
         # Without a concentric circle the pose is ambiguous: the model fit, which fits the
         # ring design's annulus as one, finds more.
         weak[j] = len(g) == 1 and len(design.circles) > 1
+    weak[_concentric_by_model(grey, design, noise_std, out, weak & ~doubtful & near)] = False
     slow = np.flatnonzero(weak)
     # The profile fit, where it converged near its seed, seeds the model fit better than the
     # boundary's moment ellipse (fewer Gauss-Newton steps); where the profiles' pose circle was
@@ -710,6 +711,43 @@ def fit_design_circles(
     for j, g in zip(slow, _fit_ml(grey, start, design, noise_std, iterations), strict=True):
         out[j] = g
     return out
+
+
+def _concentric_by_model(
+    grey: NDArray[np.generic],
+    design: FiducialDesign,
+    noise_std: float,
+    out: list[tuple[Ellipse, ...]],
+    missing: NDArray[np.bool_],
+) -> NDArray[np.intp]:
+    """Circles of the fiducials ``missing`` (a trusted profile pose circle, none of its
+    concentric circles) that lie outside an annulus, by the single-edge model seeded from that
+    pose circle scaled; ``out`` gains them. Returns the fiducials that gained one.
+
+    At 55-60 deg the ``ring`` design's annulus and the white gap inside it are too thin for
+    the profiles' windows, and its dot has too few clean lines; the single-edge model finds the
+    dot from the profiles' pose circle. The annulus model (:func:`_fit_edge_model`), which
+    refits the pose circle and fits both of the annulus' edges, is left to the fiducials this
+    does not serve: it cost 8 ms for the 400-fiducial frame's four such fiducials, mostly per
+    call, where this costs 2 ms.
+    """
+    r0 = design.pose_circle.radius
+    rest = range(2 if _has_annulus(design) else 1, len(design.circles))
+    rows = [
+        j
+        for j in np.flatnonzero(missing).tolist()
+        if out[j] and out[j][0].semi_major >= EDGE_MODEL_MIN_RADIUS_PX * r0
+    ]
+    if not rows or not rest:
+        return np.zeros(0, dtype=np.intp)
+    base = np.array([_parameters(out[j][0]) for j in rows])
+    for k in rest:
+        seeds = base.copy()
+        seeds[:, 2:4] *= design.circles[k].radius / r0
+        for j, e in zip(rows, _refine_circle(grey, noise_std, design, k, seeds), strict=True):
+            if e is not None:
+                out[j] = (*out[j], e)
+    return np.array([j for j in rows if len(out[j]) > 1], dtype=np.intp)
 
 
 def fit_arcs(

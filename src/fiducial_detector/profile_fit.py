@@ -125,8 +125,11 @@ MISFIT_TOLERANCE_PX = 0.015
 _START_BLUR = 0.8
 #: Arc length between the lines of a first pass from a coarse seed, pixels (whatever the final
 #: passes' spacing: that pass also measures the blur, which the later passes and the other
-#: circles of the fiducial keep).
-_SPARSE_SPACING_PX = 3.0
+#: circles of the fiducial keep). 4.5 px (3 before) took the 400-fiducial frame's first pass
+#: from 10 to 6.5 ms; the final fits moved by 1e-3 px (median) and the precision benchmark's
+#: rows by no more than their sampling error. At 6 px, eleven 60 deg seeds found too few lines
+#: and went to the slower edge model.
+_SPARSE_SPACING_PX = 4.5
 #: A fit whose last pass moved it less than this (pixels) has converged.
 _CONVERGED_PX = 0.05
 #: Columns of the folded remap maps (remap takes maps of fewer than 32767 rows and columns).
@@ -141,8 +144,8 @@ class _Lines:
     """Sample lines of one pass for a block of ``k`` fits, padded to ``m`` lines each.
 
     Lines are in single precision (half the memory traffic of every per-line operation), but
-    for the origins: image coordinates in single precision are off by up to 1e-4 px, so the
-    sample maps are rounded to it once, from double (fewer lines flip across a window or height
+    image coordinates in single precision are off by up to 1e-4 px, so each window's first
+    sample point is rounded to it once, from double (fewer lines flip across a window or height
     test than with every term rounded); the least-squares sums too (a few hundred terms each),
     solved in double precision (:func:`_solve`). Against double precision throughout, full
     edges' fits on the 400-target frames moved by 3e-6 px (median) and under 5e-4 px (bar one
@@ -153,15 +156,14 @@ class _Lines:
     """
 
     valid: NDArray[np.bool_]  # (k, m) a line, not padding
-    origin_u: NDArray[np.float64]  # (k, m) point on the current ellipse
-    origin_v: NDArray[np.float64]
-    normal_u: NDArray[np.floating[Any]]  # (k, m) outward unit normal
-    normal_v: NDArray[np.floating[Any]]
+    start_u: NDArray[np.float32]  # (k, m) first sample: the origin (a point on the current
+    start_v: NDArray[np.float32]  # ellipse) plus the outward unit normal times ``lower``
+    span_u: NDArray[np.floating[Any]]  # (k, m) the normal times ``width``: first to last sample
+    span_v: NDArray[np.floating[Any]]
     jac: NDArray[np.floating[Any]]  # (k, 5, m) d(signed distance)/d(u, v, A, B, C)
     kappa: NDArray[np.floating[Any]]  # (k, m) curvature of the ellipse at the origin
     lower: NDArray[np.floating[Any]]  # (k, m) window along the normal, pixels from the origin
     upper: NDArray[np.floating[Any]]
-    width: NDArray[np.floating[Any]]  # (k, m) upper - lower
     step: NDArray[np.floating[Any]]  # (k, m) spacing of the samples along each line
 
 
@@ -584,6 +586,8 @@ def _lines(
     lower = -np.minimum((1.0 - lo) * support, cap_t)
     upper = np.minimum((hi - 1.0) * support, cap_t)
     width = upper - lower
+    normal_u = ca * nx - sa * ny
+    normal_v = sa * nx + ca * ny
     # d(signed distance)/d(u, v, A, B, C) at a point of the ellipse (rho = 1): the derivative of
     # q = (p - c)^T Q (p - c) over |grad q|, with grad q = 2 Q (p - c).
     q = quadratic_form(ellipses[:, 2:5]).astype(dtype)
@@ -601,15 +605,14 @@ def _lines(
     np.multiply(dv * dv, half, out=jac[:, 4])
     return _Lines(
         valid,
-        ellipses[:, 0:1] + du,
-        ellipses[:, 1:2] + dv,
-        ca * nx - sa * ny,
-        sa * nx + ca * ny,
+        (ellipses[:, 0:1] + (du + normal_u * lower)).astype(dtype),
+        (ellipses[:, 1:2] + (dv + normal_v * lower)).astype(dtype),
+        normal_u * width,
+        normal_v * width,
         jac,
         kappa,
         lower,
         upper,
-        width,
         width / (SAMPLES - 1),
     )
 
@@ -632,24 +635,19 @@ def _centroids(
     k, m = lines.valid.shape
     # Sample-major maps (k, SAMPLES, m): every broadcast runs along the lines, not along a
     # line's few samples (the short inner loops cost more than the arithmetic).
-    frac = np.linspace(0.0, 1.0, SAMPLES, dtype=f32)[None, :, None]
-    width = lines.width.astype(f32, copy=False)
+    frac = _FRACTIONS[None, :, None]
     # remap takes maps of fewer than 32767 rows and columns: the samples are written straight
     # into rows of a folded map.
     size = k * m * SAMPLES
     rows = -(-size // _FOLD)
-    # Only the fold's tail needs zeros; the offsets along the lines serve both coordinates.
+    # Only the fold's tail needs zeros.
     fx = np.empty(rows * _FOLD, dtype=f32)
     fy = np.empty(rows * _FOLD, dtype=f32)
-    along = width[:, None, :] * frac
-    for buf, origin, normal in (
-        (fx, lines.origin_u, lines.normal_u),
-        (fy, lines.origin_v, lines.normal_v),
-    ):
+    for buf, start, span in ((fx, lines.start_u, lines.span_u), (fy, lines.start_v, lines.span_v)):
         buf[size:] = 0.0
         view = buf[:size].reshape(k, SAMPLES, m)
-        np.multiply(along, normal.astype(f32, copy=False)[:, None, :], out=view)
-        view += (origin + normal * lines.lower).astype(f32)[:, None, :]
+        np.multiply(span.astype(f32, copy=False)[:, None, :], frac, out=view)
+        view += start[:, None, :]
     prof = cv2.remap(
         src,
         fx.reshape(rows, _FOLD),
@@ -685,6 +683,8 @@ def _moment_weights() -> NDArray[np.float32]:
 
 
 _MOMENT_WEIGHTS = np.ascontiguousarray(_moment_weights())
+#: Each sample's place along its line's window, as a fraction of the window.
+_FRACTIONS = np.linspace(0.0, 1.0, SAMPLES, dtype=np.float32)
 #: The weights of sum(d) and sum(d x) alone (``(2, SAMPLES)``), for passes without the second
 #: moment.
 _MOMENT_WEIGHTS_01 = np.ascontiguousarray(_MOMENT_WEIGHTS.T[:2])

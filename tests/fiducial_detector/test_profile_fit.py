@@ -129,6 +129,34 @@ def test_detector_default_is_the_profile_fit_and_steep_dots_get_the_model_fit() 
     assert fast[0].center_px == model[0].center_px
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ring_at_60_deg_keeps_its_profile_pose_circle_and_gains_its_dot_by_the_model(
+    seed: int,
+) -> None:
+    """At 60 deg and blur 0.7 the annulus' inner edge and the dot leave the profiles too few
+    clean lines; the dot is then fitted by the single-edge model from the profiles' pose
+    circle, which is kept as it is (not refitted with the annulus by the slower model)."""
+    spec = get_design("ring")
+    scene = render_one("ring", 60, 60, 0.7, 0.01, seed)
+    seed_ellipse = coarse_seed(true_ellipse(scene, 0), np.random.default_rng(seed))
+    default = fit_design_circles(scene.image, seed_ellipse[None], spec, 2.55)[0]
+    alone = refine_by_profiles(
+        scene.image,
+        seed_ellipse[None],
+        dark_inside=True,
+        rho_range=RING_RHO,
+        noise_std=2.55,
+        spacing=POSE_LINE_SPACING_PX,
+    )
+    assert [e.radius for e in default] == [1.0, 0.24]
+    np.testing.assert_allclose(default[0].center_px, alone.params[0, :2], atol=1e-9)
+    dot, truth = default[1], true_ellipse(scene, 2)
+    fitted = np.array([*dot.center_px, dot.semi_major, dot.semi_minor])
+    assert np.all(abs_errors(fitted, truth) < 0.03), fitted - truth[:4]
+    sd = np.sqrt(np.diag(dot.covariance))
+    assert np.all(np.isfinite(sd)) and np.all(sd[:2] < 0.03)
+
+
 def test_unfittable_seeds_fail_cleanly_and_bad_arguments_raise() -> None:
     flat = np.full((80, 80), 128, np.uint8)
     seed = np.array([[40.0, 40.0, 20.0, 15.0, 0.3]])
