@@ -699,6 +699,8 @@ def fit_design_circles(
         # Without a concentric circle the pose is ambiguous: the model fit, which fits the
         # ring design's annulus as one, finds more.
         weak[j] = len(g) == 1 and len(design.circles) > 1
+    # Where the profiles' pose circle is trusted, the single-edge model first looks for the
+    # circles outside the annulus alone; the annulus model is left to those it does not find.
     weak[_concentric_by_model(grey, design, noise_std, out, weak & ~doubtful & near)] = False
     slow = np.flatnonzero(weak)
     # The profile fit, where it converged near its seed, seeds the model fit better than the
