@@ -683,11 +683,11 @@ def _moment_weights() -> NDArray[np.float32]:
 
 
 _MOMENT_WEIGHTS = np.ascontiguousarray(_moment_weights())
-#: Each sample's place along its line's window, as a fraction of the window.
-_FRACTIONS = np.linspace(0.0, 1.0, SAMPLES, dtype=np.float32)
 #: The weights of sum(d) and sum(d x) alone (``(2, SAMPLES)``), for passes without the second
 #: moment.
 _MOMENT_WEIGHTS_01 = np.ascontiguousarray(_MOMENT_WEIGHTS.T[:2])
+#: Each sample's place along its line's window, as a fraction of the window.
+_FRACTIONS = np.linspace(0.0, 1.0, SAMPLES, dtype=np.float32)
 
 
 def _lag_moments() -> NDArray[np.float64]:
