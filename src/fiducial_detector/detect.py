@@ -734,22 +734,18 @@ def _concentric_by_model(
     call, where this costs 2 ms.
     """
     r0 = design.pose_circle.radius
-    rest = range(2 if _has_annulus(design) else 1, len(design.circles))
     rows = [
         j
         for j in np.flatnonzero(missing).tolist()
         if out[j] and out[j][0].semi_major >= EDGE_MODEL_MIN_RADIUS_PX * r0
     ]
-    if not rows or not rest:
-        return np.zeros(0, dtype=np.intp)
-    base = np.array([_parameters(out[j][0]) for j in rows])
-    for k in rest:
-        seeds = base.copy()
-        seeds[:, 2:4] *= design.circles[k].radius / r0
-        for j, e in zip(rows, _refine_circle(grey, noise_std, design, k, seeds), strict=True):
-            if e is not None:
-                out[j] = (*out[j], e)
-    return np.array([j for j in rows if len(out[j]) > 1], dtype=np.intp)
+    poses = [out[j][0] for j in rows]
+    gained = []
+    for j, more in zip(rows, _circles_beyond_annulus(grey, noise_std, design, poses), strict=True):
+        if more:
+            out[j] = (*out[j], *more)
+            gained.append(j)
+    return np.array(gained, dtype=np.intp)
 
 
 def fit_arcs(
@@ -1089,7 +1085,6 @@ def _fit_edge_model(
     :data:`SMALL_ANNULUS_ITERATIONS`)."""
     if len(seeds) == 0:
         return []
-    r0 = design.pose_circle.radius
     annulus = _has_annulus(design)
     if annulus:
         # The ring design's pose circle is the outer edge of a black annulus whose inner edge is
@@ -1115,18 +1110,39 @@ def _fit_edge_model(
         if e is not None and groups[j]:
             groups[j].append(e)
     found = [j for j, e in enumerate(pose) if e is not None]
-    rest = range(2 if annulus else 1, len(design.circles))
-    if not found or not rest:
-        return [tuple(g) for g in groups]
-    base = np.array([_parameters(pose[j]) for j in found])  # type: ignore[arg-type]
-    for k in rest:
-        inner = base.copy()
-        inner[:, 2:4] *= design.circles[k].radius / r0
-        circle_fits = _refine_circle(grey, noise, design, k, inner, iterations)
-        for j, e in zip(found, circle_fits, strict=True):
-            if e is not None:
-                groups[j].append(e)
+    poses = [e for e in pose if e is not None]
+    for j, more in zip(
+        found, _circles_beyond_annulus(grey, noise, design, poses, iterations), strict=True
+    ):
+        groups[j].extend(more)
     return [tuple(g) for g in groups]
+
+
+def _circles_beyond_annulus(
+    grey: NDArray[np.generic],
+    noise: float,
+    design: FiducialDesign,
+    poses: Sequence[Ellipse],
+    iterations: int = 4,
+) -> list[list[Ellipse]]:
+    """Per fitted pose circle, the design's circles outside its annulus (every circle but the
+    pose circle, without one) that the single-edge model fits from it scaled, by at most
+    ``iterations`` Gauss-Newton steps, largest first."""
+    out: list[list[Ellipse]] = [[] for _ in poses]
+    rest = range(2 if _has_annulus(design) else 1, len(design.circles))
+    if not poses or not rest:
+        return out
+    r0 = design.pose_circle.radius
+    base = np.array([_parameters(e) for e in poses])
+    for k in rest:
+        seeds = base.copy()
+        seeds[:, 2:4] *= design.circles[k].radius / r0
+        for more, e in zip(
+            out, _refine_circle(grey, noise, design, k, seeds, iterations), strict=True
+        ):
+            if e is not None:
+                more.append(e)
+    return out
 
 
 def _refine_annulus(
