@@ -275,6 +275,29 @@ def test_decimated_candidate_search_finds_the_same_fiducials() -> None:
         assert abs(a.pose_ellipse.semi_major - b.pose_ellipse.semi_major) < 0.01
 
 
+@pytest.mark.parametrize("decimate", [1, 2])
+def test_fiducials_on_paper_on_a_dark_unit_are_found(decimate: int) -> None:
+    """On a surround dark enough to threshold black (a dark concrete unit), each fiducial's
+    white paper is a hole in one big black component: the fiducials inside those holes are
+    found all the same, with their codes and centres (a boundary trace that skipped holes
+    found none)."""
+    camera = CameraModel.ideal(420, 200, FOCAL_PX)
+    rng = np.random.default_rng(21)
+    targets = []
+    for k, (design, slant) in enumerate([("ring", 0), ("dot", 40), ("ring", 55), ("dot", 0)]):
+        z = FOCAL_PX * DIAMETER_MM / 60
+        u, v = 60 + 100 * k, 80 + 40 * (k % 2)
+        xy = (np.array([u, v]) - camera.K[:2, 2]) / FOCAL_PX * z
+        rot = rotation_from_slant_tilt(np.radians(slant), rng.uniform(0, np.pi))
+        targets.append(Target(9 * k + 4, design, DIAMETER_MM, rot, np.array([*xy, z])))
+    scene = render(camera, targets, blur_sigma=0.7, noise=0.01, rng=rng, background=0.2)
+    found = detect(scene.image, decimate=decimate)
+    assert sorted((d.design, d.code) for d in found) == sorted((t.design, t.code) for t in targets)
+    for d in found:
+        truth = next(t for t in scene.truth if t.code == d.code)
+        assert np.hypot(*(np.asarray(d.center_px) - truth.center_px)) < 0.1
+
+
 def _clutter(camera: CameraModel, rng: np.random.Generator) -> list[Patch]:
     """Dark blobs, plain discs, plain rings and a bullseye without code at random poses."""
     shapes = []
