@@ -325,10 +325,11 @@ def poses_noisy(field: Field, seed: int) -> tuple[list, list, NDArray, NDArray]:
 
 
 def poses_e2e(
-    field: Field, seed: int, diameter_mm: float, image_fit: bool = False
+    field: Field, seed: int, diameter_mm: float, image_fit: bool = False, subpixels: int = 1
 ) -> tuple[list, list, NDArray, NDArray]:
-    """Render, detect and estimate both states (refined by the image fit when ``image_fit``);
-    tie poses to truth fiducials by image position."""
+    """Render, detect and estimate both states (refined by the image fit when ``image_fit``;
+    blurred on ``subpixels`` x ``subpixels`` sub-pixels when more than 1, see
+    :func:`armourcam.render.render`); tie poses to truth fiducials by image position."""
     from armourcam.render import render
     from fiducial_detector.detect import detect
     from pose_estimator.estimate import estimate
@@ -337,7 +338,14 @@ def poses_e2e(
     out: list = []
     for k, state in enumerate((field.before, field.after)):
         rng = np.random.default_rng(2000 + 2 * seed + k)
-        scene = render(field.camera, state.targets("ring"), blur_sigma=0.5, noise=0.01, rng=rng)
+        scene = render(
+            field.camera,
+            state.targets("ring"),
+            blur_sigma=0.5,
+            noise=0.01,
+            rng=rng,
+            subpixels=subpixels,
+        )
         poses = estimate(detect(scene.image), field.camera, diameter_mm)
         if image_fit:
             poses = refine_from_image(scene.image, poses, field.camera, diameter_mm)
@@ -414,6 +422,14 @@ def main() -> None:
         help="e2e: refine every pose by the image fit (pose_estimator.image_fit)",
     )
     ap.add_argument(
+        "--blur-subpixels",
+        type=int,
+        default=1,
+        metavar="S",
+        help="e2e: blur on S x S sub-pixels per pixel, a Gaussian then each pixel's box "
+        "(armourcam.render.defocus_subpixels); default 1, OpenCV's sampled kernel on the pixels",
+    )
+    ap.add_argument(
         "--pose-cache",
         type=Path,
         help="e2e: keep each seed's detected poses in this folder and reuse them (rendering and "
@@ -438,6 +454,11 @@ def main() -> None:
         f"hidden; poses: {args.source}"
         + (f" (ring, {args.diameter_mm} mm, blur 0.5, noise 1 %)" if args.source == "e2e" else "")
         + (", image fit" if args.image_fit else "")
+        + (
+            f", blur on {args.blur_subpixels}x{args.blur_subpixels} sub-pixels"
+            if args.blur_subpixels > 1
+            else ""
+        )
     )
     print(
         f"{'seed':>4} {'method':>9} {'right %':>7} {'right<NN/2 %':>12} {'still->disp':>11} "
@@ -514,15 +535,18 @@ def _cached_e2e(
 ) -> tuple[list, list, NDArray, NDArray]:
     """:func:`poses_e2e`, kept in ``args.pose_cache`` (when given) under a name that says what
     made it (written atomically: an interrupted run leaves no half file)."""
+    made = (seed, args.diameter_mm, args.image_fit, args.blur_subpixels)
     if args.pose_cache is None:
-        return poses_e2e(field, seed, args.diameter_mm, args.image_fit)
+        return poses_e2e(field, *made)
     fit = "_fit" if args.image_fit else ""
-    path = args.pose_cache / f"e2e_seed{seed}_units{args.units}_d{args.diameter_mm:g}{fit}.pkl"
+    sub = f"_sub{args.blur_subpixels}" if args.blur_subpixels > 1 else ""
+    name = f"e2e_seed{seed}_units{args.units}_d{args.diameter_mm:g}{fit}{sub}.pkl"
+    path = args.pose_cache / name
     if path.exists():
         with path.open("rb") as f:
             cached: tuple[list, list, NDArray, NDArray] = pickle.load(f)  # our own file
         return cached
-    poses = poses_e2e(field, seed, args.diameter_mm, args.image_fit)
+    poses = poses_e2e(field, *made)
     write_atomic(path, pickle.dumps(poses))
     return poses
 

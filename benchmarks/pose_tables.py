@@ -45,7 +45,15 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from armourcam.render import BACKGROUND, Target, defocus, render, rotation_from_slant_tilt
+from armourcam.render import (
+    BACKGROUND,
+    Target,
+    defocus,
+    defocus_subpixels,
+    render,
+    rotation_from_slant_tilt,
+    subpixel_camera,
+)
 from fiducial_detector.detect import SUBPIXEL_METHODS, detect
 from fiducial_detector.types import FiducialDetection
 from pose_estimator.camera import CameraModel
@@ -100,13 +108,18 @@ def tile_camera(size_px: int) -> CameraModel:
 
 
 def base_image(
-    design: str, size_px: int, slant_deg: float, supersample: int = 16
+    design: str, size_px: int, slant_deg: float, supersample: int = 16, subpixels: int = 1
 ) -> tuple[NDArray[np.float64], float]:
     """Noise-free, unblurred image (fraction of full range) and the true z. Edge pixels get
     ``supersample``^2 rays, each covering its sub-square exactly: the rendering error, fixed
-    across a case's noise images, stays near 0.002 of the contrast at any pixel."""
+    across a case's noise images, stays near 0.002 of the contrast at any pixel. With
+    ``subpixels`` S > 1 the image is on S x S sub-pixels per pixel (``supersample / S`` rays per
+    sub-pixel side), for :func:`armourcam.render.defocus_subpixels`."""
     z = F_PX * DIAMETER_MM / size_px
     cam = tile_camera(size_px)
+    if subpixels > 1:
+        cam = subpixel_camera(cam, subpixels)
+        supersample = -(-supersample // subpixels)
     target = Target(
         CODE,
         design,
@@ -129,13 +142,16 @@ def run_case(
     rng: np.random.Generator,
     subpixel: str = "ml",
     image_fit: bool = False,
+    subpixels: int = 1,
 ) -> tuple[CaseStats, float]:
     """Detect and pose ``n_images`` noisy copies of ``base``; returns stats and detect seconds.
     With ``image_fit`` each pose is refined by :func:`pose_estimator.image_fit.refine_from_image`
-    (in its tile's camera: the mosaic's pixels with the principal point at the tile's centre)."""
+    (in its tile's camera: the mosaic's pixels with the principal point at the tile's centre).
+    ``subpixels`` S > 1: ``base`` is on S x S sub-pixels per pixel and blurred physically
+    (:func:`armourcam.render.defocus_subpixels`) instead of by the sampled kernel."""
     cam = tile_camera(size_px)
-    h, w = base.shape
-    blurred = defocus(base, blur)
+    blurred = defocus(base, blur) if subpixels == 1 else defocus_subpixels(base, blur, subpixels)
+    h, w = blurred.shape
     rows = int(np.ceil(n_images / TILES[1]))
     cols = min(n_images, TILES[1])
     mosaic = np.tile(blurred, (rows, cols))
@@ -187,17 +203,19 @@ def run_case(
 
 
 def run_slant(
-    task: tuple[str, int, int, int, str, bool],
+    task: tuple[str, int, int, int, str, bool, int],
 ) -> tuple[dict[tuple[str, int, float, float, int], CaseStats], float]:
     """All degradations of one (design, size, slant); seeded per task, so that the tasks can run
     in any order and split over any number of workers."""
-    design, size, slant, n_images, subpixel, image_fit = task
+    design, size, slant, n_images, subpixel, image_fit, subpixels = task
     rng = np.random.default_rng([20240601, size, DESIGNS.index(design), slant])
     cases = {}
     seconds = 0.0
-    base, z = base_image(design, size, slant)
+    base, z = base_image(design, size, slant, subpixels=subpixels)
     for blur, noise in DEGRADATIONS:
-        st, sec = run_case(design, size, base, z, blur, noise, n_images, rng, subpixel, image_fit)
+        st, sec = run_case(
+            design, size, base, z, blur, noise, n_images, rng, subpixel, image_fit, subpixels
+        )
         seconds += sec
         cases[(design, size, blur, noise, slant)] = st
     return cases, seconds
@@ -255,6 +273,16 @@ def main(argv: list[str] | None = None) -> int:
         "(pose_estimator.image_fit)",
     )
     parser.add_argument(
+        "--blur-subpixels",
+        type=int,
+        default=1,
+        metavar="S",
+        help="render on S x S sub-pixels per pixel and blur there, a continuous Gaussian then "
+        "each pixel's box (armourcam.render.defocus_subpixels); default 1, the paper's protocol: "
+        "OpenCV's sampled kernel on the rendered pixels (the Cramer-Rao bounds stay the "
+        "sampled kernel's)",
+    )
+    parser.add_argument(
         "--slants",
         help="slants to run, degrees, as FIRST-LAST[:STEP] (default 0-89; --quick: 0,20,40,60,69)",
     )
@@ -279,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     # One task per (design, size, slant), the largest fiducials (the costliest fits) first, so
     # that the workers stay busy to the end.
     tasks = [
-        (d, s, a, n_images, args.subpixel, args.image_fit)
+        (d, s, a, n_images, args.subpixel, args.image_fit, args.blur_subpixels)
         for s in sorted(sizes, reverse=True)
         for d in designs
         for a in slants
@@ -308,10 +336,14 @@ def main(argv: list[str] | None = None) -> int:
     for part_crb in crbs:
         crb.update(part_crb)
     total = time.perf_counter() - t_start
+    s = args.blur_subpixels
+    sub = f", blur on {s}x{s} sub-pixels" if s > 1 else ""
     print(
         f"# pose_tables: {'quick' if args.quick else 'full'} run, {len(slants)} slants x "
         f"{n_images} images, subpixel={args.subpixel}"
-        f"{', image fit' if args.image_fit else ''}, {total:.0f} s total "
+        f"{', image fit' if args.image_fit else ''}"
+        f"{sub}"
+        f", {total:.0f} s total "
         f"({det_seconds:.0f} s in detect)"
     )
     report(cases, crb, paper, designs, sizes, slants)
