@@ -48,11 +48,11 @@ from scipy.stats import chi2
 from armourcam.render import (
     BACKGROUND,
     Target,
-    defocus,
     defocus_subpixels,
     render,
     rotation_from_slant_tilt,
     subpixel_camera,
+    subpixel_rays,
 )
 from fiducial_detector.detect import SUBPIXEL_METHODS, detect
 from fiducial_detector.types import FiducialDetection
@@ -119,7 +119,7 @@ def base_image(
     cam = tile_camera(size_px)
     if subpixels > 1:
         cam = subpixel_camera(cam, subpixels)
-        supersample = -(-supersample // subpixels)
+        supersample = subpixel_rays(supersample, subpixels)
     target = Target(
         CODE,
         design,
@@ -150,7 +150,7 @@ def run_case(
     ``subpixels`` S > 1: ``base`` is on S x S sub-pixels per pixel and blurred physically
     (:func:`armourcam.render.defocus_subpixels`) instead of by the sampled kernel."""
     cam = tile_camera(size_px)
-    blurred = defocus(base, blur) if subpixels == 1 else defocus_subpixels(base, blur, subpixels)
+    blurred = defocus_subpixels(base, blur, subpixels)
     h, w = blurred.shape
     rows = int(np.ceil(n_images / TILES[1]))
     cols = min(n_images, TILES[1])

@@ -488,16 +488,24 @@ def defocus_subpixels(
     sigma : float
         Blur sd, pixels (0: only the block mean).
     factor : int
-        Sub-pixels per pixel side.
+        Sub-pixels per pixel side; 1: ``image`` is on the pixels, blurred by :func:`defocus`.
     """
     if factor < 1:
         raise RenderError(f"factor must be >= 1, got {factor}")
     img = np.asarray(image, dtype=np.float64)
     if sigma > 0:
         img = defocus(img, sigma * factor)
+    if factor == 1:
+        return img
     h, w = img.shape[0] // factor, img.shape[1] // factor
     out = img[: h * factor, : w * factor].reshape(h, factor, w, factor).mean(axis=(1, 3))
     return np.asarray(out, dtype=np.float64)
+
+
+def subpixel_rays(supersample: int, factor: int) -> int:
+    """Rays per sub-pixel side at edges, for ``supersample`` per pixel side on ``factor`` x
+    ``factor`` sub-pixels (at least one)."""
+    return max(1, -(-supersample // factor))
 
 
 def subpixel_camera(camera: CameraModel, factor: int) -> CameraModel:
@@ -582,15 +590,12 @@ def render(
     # Painter's algorithm, farthest first, so nearer patches occlude farther ones.
     patches = list(clutter) + [fiducial_patch(t) for t in targets]
     patches.sort(key=lambda p: -float(p.position_mm[2]))
-    rays = max(1, -(-supersample // subpixels))
+    rays = subpixel_rays(supersample, subpixels)
     for patch in patches:
         _render_patch(grid, patch, canvas, rays)
     # Reflectance -> intensity: black..white (the background level where nothing is printed).
     img: NDArray[np.float64] = black + (white - black) * canvas
-    if subpixels > 1:
-        img = defocus_subpixels(img, blur_sigma, subpixels)
-    elif blur_sigma > 0:
-        img = defocus(img, blur_sigma)
+    img = defocus_subpixels(img, blur_sigma, subpixels)
     if noise > 0:
         gen = rng if rng is not None else np.random.default_rng()
         img = img + gen.normal(0.0, noise, img.shape)

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 from numpy.typing import NDArray
+from scipy.stats import norm
 
 from armourcam.render import (
     BACKGROUND,
@@ -254,7 +255,6 @@ def _box_blurred_step(u: NDArray[np.float64], edge_u: float, sigma: float) -> ND
     """White fraction of pixels ``u`` across a step at ``edge_u`` seen through a continuous
     Gaussian of sd ``sigma``, then each pixel's box: the integral of the normal cdf over the
     pixel (antiderivative ``t Phi(t) + phi(t)``)."""
-    from scipy.stats import norm
 
     def anti(t: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.asarray(t * norm.cdf(t) + norm.pdf(t), dtype=np.float64)
