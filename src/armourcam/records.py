@@ -712,11 +712,25 @@ def _int_column(name: str, field: str, values: list[int], lo: int, hi: int) -> N
     return arr
 
 
+#: The per-ellipse fields of a detection record, in ``Ellipse``'s order (its covariance apart).
+_ELLIPSE_FIELDS = (
+    "ellipse_u",
+    "ellipse_v",
+    "semi_major",
+    "semi_minor",
+    "angle",
+    "radius",
+    "rms_residual",
+    "systematic_px",
+)
+
+
 def detections_to_records(detections: Sequence[FiducialDetection]) -> NDArray[Any]:
     """``FiducialDetection`` list -> ``FiducialDetectionRecord`` structured array.
 
     Stored: code, hamming, design, centre, contrast, rotation and every ellipse (centre, axes,
-    angle, nominal radius, RMS residual, covariance upper triangle). Not stored: ``extra``.
+    angle, nominal radius, RMS residual, systematic error, covariance upper triangle). Not
+    stored: ``extra``.
     Column-wise (no per-record numpy access): about 2 ms for 400 ring detections.
 
     Raises
@@ -732,7 +746,7 @@ def detections_to_records(detections: Sequence[FiducialDetection]) -> NDArray[An
     if n == 0:
         return out
     # Per-ellipse values gathered into (n, slots) tables, NaN where a slot is unused.
-    table = np.full((7, n, slots), np.nan)
+    table = np.full((len(_ELLIPSE_FIELDS), n, slots), np.nan)
     covs = np.full((n, slots, 5, 5), np.nan)
     n_ell: list[int] = []
     designs: list[int] = []
@@ -752,6 +766,7 @@ def detections_to_records(detections: Sequence[FiducialDetection]) -> NDArray[An
             [e.angle for e in det.ellipses],
             [e.radius for e in det.ellipses],
             [e.rms_residual for e in det.ellipses],
+            [e.systematic_px for e in det.ellipses],
         ]
         for j, e in enumerate(det.ellipses):
             covs[i, j] = e.covariance
@@ -763,9 +778,7 @@ def detections_to_records(detections: Sequence[FiducialDetection]) -> NDArray[An
     out["v"] = [d.center_px[1] for d in detections]
     out["contrast"] = [d.contrast for d in detections]
     out["rotation"] = [d.rotation for d in detections]
-    for row, name in enumerate(
-        ("ellipse_u", "ellipse_v", "semi_major", "semi_minor", "angle", "radius", "rms_residual")
-    ):
+    for row, name in enumerate(_ELLIPSE_FIELDS):
         out[name] = table[row]
     out["ellipse_covariance"] = covariance_to_upper(covs).reshape(n, slots * 15)
     return out
@@ -783,16 +796,7 @@ def records_to_detections(records: NDArray[Any]) -> list[FiducialDetection]:
     slots = int(layout(DETECTION).constants["MAX_ELLIPSES"])
     names = {v: k for k, v in design_ids().items()}
     covs = upper_to_covariance(recs["ellipse_covariance"].reshape(len(recs), slots, 15), 5)
-    per_slot = zip(
-        *(
-            recs[name].tolist()
-            for name in (
-                "ellipse_u", "ellipse_v", "semi_major", "semi_minor", "angle", "radius",
-                "rms_residual",
-            )
-        ),
-        strict=True,
-    )  # fmt: skip
+    per_slot = zip(*(recs[name].tolist() for name in _ELLIPSE_FIELDS), strict=True)
     head = zip(
         *(recs[name].tolist() for name in ("code", "hamming", "u", "v", "contrast", "rotation")),
         strict=True,
@@ -801,9 +805,9 @@ def records_to_detections(records: NDArray[Any]) -> list[FiducialDetection]:
     for i, (k, slot, (code, hamming, u, v, contrast, rotation)) in enumerate(
         zip(n_ell.tolist(), per_slot, head, strict=True)
     ):
-        eu, ev, a, b, ang, rad, rms = slot
+        eu, ev, a, b, ang, rad, rms, sysm = slot
         ellipses = tuple(
-            Ellipse((eu[j], ev[j]), a[j], b[j], ang[j], covs[i, j], rad[j], rms[j])
+            Ellipse((eu[j], ev[j]), a[j], b[j], ang[j], covs[i, j], rad[j], rms[j], sysm[j])
             for j in range(k)
         )
         out.append(
@@ -836,8 +840,8 @@ def detection_ellipse_columns(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``FiducialDetectionRecord`` rows -> the ellipse columns of
     :func:`pose_estimator.estimate_ellipses`, without detection objects: ``(u, v, semi_major,
-    semi_minor, angle, radius)`` ``(6, K, N)`` and covariances ``(5, 5, K, N)``, NaN beyond each
-    row's ``n_ellipses`` (``K`` is the largest).
+    semi_minor, angle, radius, systematic_px)`` ``(7, K, N)`` and covariances ``(5, 5, K, N)``,
+    NaN beyond each row's ``n_ellipses`` (``K`` is the largest).
 
     Raises
     ------
@@ -846,7 +850,8 @@ def detection_ellipse_columns(
     """
     recs, n_ell, _ = _checked_detections(records)
     kc = int(n_ell.max()) if len(recs) else 1
-    names = ("ellipse_u", "ellipse_v", "semi_major", "semi_minor", "angle", "radius")
+    # The columns of pose_estimator.detection_columns: the ellipse fields but the RMS residual.
+    names = [name for name in _ELLIPSE_FIELDS if name != "rms_residual"]
     values = np.stack([np.asarray(recs[name][:, :kc], dtype=np.float64).T for name in names])
     slots = int(layout(DETECTION).constants["MAX_ELLIPSES"])
     upper = recs["ellipse_covariance"].reshape(len(recs), slots, 15)[:, :kc]
@@ -865,6 +870,7 @@ def pose_columns_to_records(
     center_px: Any,
     detection_index: Any,
     n_frames: Any = 1,
+    systematic_mm2: Any = None,
 ) -> NDArray[Any]:
     """Pose columns -> ``FiducialPoseRecord`` structured array (the shared body of
     :func:`poses_to_records`, and the pose node's path without pose objects).
@@ -880,6 +886,9 @@ def pose_columns_to_records(
         Row of that detection in its frame's detection records (-1: none).
     n_frames : integer or (N,) integers
         Frames fused into each pose.
+    systematic_mm2 : (N, 3, 3) array, optional
+        Covariances of the positions' systematic errors (``FiducialPose.systematic_mm2``;
+        zeros or None: none).
     """
     lay = layout(POSE)
     try:
@@ -888,6 +897,11 @@ def pose_columns_to_records(
         nrm = np.asarray(normal, dtype=np.float64).reshape(n, 3)
         cov = np.asarray(covariance_mm2, dtype=np.float64).reshape(n, 3, 3)
         uv = np.asarray(center_px, dtype=np.float64).reshape(n, 2)
+        bias = (
+            np.zeros((n, 3, 3))
+            if systematic_mm2 is None
+            else np.asarray(systematic_mm2, dtype=np.float64).reshape(n, 3, 3)
+        )
     except ValueError as err:
         raise RecordError(f"poses with malformed position/normal/covariance: {err}") from err
     out = lay.empty(n)
@@ -896,6 +910,7 @@ def pose_columns_to_records(
     out["x"], out["y"], out["z"] = pos.T
     out["nx"], out["ny"], out["nz"] = nrm.T
     out["covariance"] = covariance_to_upper(cov)
+    out["systematic"] = covariance_to_upper(bias)
     out["code"] = _int_column("pose", "code", np.asarray(code).tolist(), 0, 2**32 - 1)
     frames = np.broadcast_to(np.asarray(n_frames), (n,)).tolist()
     out["n_frames"] = _int_column("pose", "n_frames", frames, 1, 2**32 - 1)
@@ -931,6 +946,7 @@ def estimate_pose_records(
         result.covariance_mm2[keep],
         np.column_stack([recs["u"][keep], recs["v"][keep]]),
         keep,
+        systematic_mm2=None if result.systematic_mm2 is None else result.systematic_mm2[keep],
     )
 
 
@@ -947,8 +963,9 @@ def poses_to_records(
         The frame's detections, in the order they are published; a pose whose ``detection`` is
         one of them (by identity) records its row in ``detection_index``, else -1.
 
-    Stored: code, position, normal, covariance (upper triangle), n_frames, the detection's centre
-    ``(u, v)`` (NaN without a detection) and ``detection_index``.
+    Stored: code, position, normal, covariance and systematic covariance (upper triangles; zeros
+    for a pose without a known bias), n_frames, the detection's centre ``(u, v)`` (NaN without a
+    detection) and ``detection_index``.
     """
     if not poses:
         return layout(POSE).empty(0)
@@ -962,8 +979,10 @@ def poses_to_records(
     index = [index_of.get(id(p.detection), -1) if p.detection is not None else -1 for p in poses]
     nan = (np.nan, np.nan)
     uv = [p.detection.center_px if p.detection is not None else nan for p in poses]
+    zero = np.zeros((3, 3))
+    bias = [zero if p.systematic_mm2 is None else p.systematic_mm2 for p in poses]
     return pose_columns_to_records(
-        [p.code for p in poses], pos, nrm, cov, uv, index, [p.n_frames for p in poses]
+        [p.code for p in poses], pos, nrm, cov, uv, index, [p.n_frames for p in poses], bias
     )
 
 
@@ -982,6 +1001,8 @@ def records_to_poses(
     """
     recs = _as_records(POSE, records)
     covs = upper_to_covariance(recs["covariance"], 3)
+    bias = upper_to_covariance(recs["systematic"], 3)
+    biased = np.any(bias != 0.0, axis=(1, 2)).tolist()
     pos = np.column_stack([recs["x"], recs["y"], recs["z"]]).astype(np.float64)
     nrm = np.column_stack([recs["nx"], recs["ny"], recs["nz"]]).astype(np.float64)
     idx = recs["detection_index"].tolist()
@@ -1001,6 +1022,7 @@ def records_to_poses(
             covariance_mm2=covs[i].copy(),
             detection=detections[idx[i]] if detections is not None and idx[i] >= 0 else None,
             n_frames=frames[i],
+            systematic_mm2=bias[i].copy() if biased[i] else None,
         )
         for i in range(len(recs))
     ]

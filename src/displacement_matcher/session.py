@@ -1099,6 +1099,11 @@ def pose_to_dict(pose: FiducialPose) -> dict[str, Any]:
         "normal": np.asarray(pose.normal, dtype=float).tolist(),
         "covariance_mm2": np.asarray(pose.covariance_mm2, dtype=float).tolist(),
         "n_frames": int(pose.n_frames),
+        "systematic_mm2": (
+            None
+            if pose.systematic_mm2 is None
+            else np.asarray(pose.systematic_mm2, dtype=float).tolist()
+        ),
     }
 
 
@@ -1107,7 +1112,10 @@ def pose_from_dict(doc: dict[str, Any]) -> FiducialPose:
     pos: NDArray[np.float64] = np.asarray(doc["position_mm"], dtype=np.float64).reshape(3)
     normal: NDArray[np.float64] = np.asarray(doc["normal"], dtype=np.float64).reshape(3)
     cov: NDArray[np.float64] = np.asarray(doc["covariance_mm2"], dtype=np.float64).reshape(3, 3)
-    return FiducialPose(int(doc["code"]), pos, normal, cov, None, int(doc.get("n_frames", 1)))
+    bias = doc.get("systematic_mm2")  # (absent from baselines saved before it existed)
+    systematic = None if bias is None else np.asarray(bias, dtype=np.float64).reshape(3, 3)
+    frames = int(doc.get("n_frames", 1))
+    return FiducialPose(int(doc["code"]), pos, normal, cov, None, frames, systematic)
 
 
 def marker_to_dict(m: MarkerSpec) -> dict[str, Any]:

@@ -32,6 +32,14 @@ class Ellipse:
         The fit's root-mean-square residual, for diagnostics; its unit is the method's: the
         dual conic's algebraic residual, the edge model's over the image noise, the edge
         profiles' edge-position residual in pixels.
+    systematic_px : float
+        Standard deviation, pixels, of a systematic error the fit's method is known to make here
+        and ``covariance`` leaves out (a bias, the same in every image of the scene, not
+        scatter): the gradient dual conic wherever it gives the pose circle (standing in where
+        the other fits failed, and the ``dot`` design's dot below the edge model's size;
+        :data:`fiducial_detector.detect.DUAL_CONIC_SYSTEMATIC_PX`); 0 for the other fits. The
+        pose estimator reports the error it makes in the pose's own systematic covariance
+        (``FiducialPose.systematic_mm2``), not in its covariance or in the fit's weight.
     """
 
     center_px: tuple[float, float]
@@ -41,6 +49,7 @@ class Ellipse:
     covariance: NDArray[np.float64]
     radius: float
     rms_residual: float = 0.0
+    systematic_px: float = 0.0
 
     def conic(self) -> NDArray[np.float64]:
         """Symmetric 3x3 conic matrix ``C`` with ``[u v 1] C [u v 1]^T = 0`` on the ellipse.

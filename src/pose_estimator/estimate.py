@@ -26,7 +26,11 @@ the TRIP method). Here every fitted concentric circle of the design contributes:
 5. **Honest covariance.** The position covariance is the estimator's own (sandwich) covariance
    under the fits' covariances. When the two candidates fit (almost) equally well - a design with a
    single circle, or a nearly fronto-parallel view - the result is their likelihood-weighted
-   mixture, whose covariance includes the spread between them.
+   mixture, whose covariance includes the spread between them. That covariance is the scatter
+   from image to image; a pose circle whose fit is known to be biased (``Ellipse.systematic_px``:
+   the dual conic standing in) also gives the error that bias makes, the same in every image, as
+   a systematic covariance beside it (``systematic_mm2``), which neither weighs the fits nor
+   shrinks when frames are fused.
 
 Conventions: pixels ``(u, v)`` with pixel centres at integer coordinates; camera frame OpenCV
 (x right, y down, z forward), millimetres; normals point out of the printed face, towards the
@@ -78,6 +82,8 @@ INNER_FLOOR_PX = 0.05
 #: (k1 up to -0.25 over a 3008x2000 frame), 8 to 1e-10 px. 16 keeps a margin.
 _UNDISTORT_SAMPLES = 16
 _GN_ITERATIONS = 1
+#: Rows of the ellipse columns: ``(u, v, semi_major, semi_minor, angle, radius, systematic_px)``.
+_COLUMNS = 7
 
 
 def estimate(
@@ -121,11 +127,17 @@ def estimate(
     values, covs = detection_columns(dets)
     result = estimate_ellipses(values, covs, 0.5 * float(diameter_mm), camera)
     pos, nrm, cvm = result.position_mm, result.normal, result.covariance_mm2
+    biased = result.systematic_mm2
     if not result.valid.all():
         keep = np.flatnonzero(result.valid)
         dets = [dets[i] for i in keep]
         pos, nrm, cvm = pos[keep], nrm[keep], cvm[keep]
-    return FiducialPose.from_rows([d.code for d in dets], pos, nrm, cvm, dets)
+        biased = None if biased is None else biased[keep]
+    sysm = None
+    if biased is not None:
+        # A pose without a known bias keeps None (most of them).
+        sysm = [b if b.any() else None for b in biased]
+    return FiducialPose.from_rows([d.code for d in dets], pos, nrm, cvm, dets, sysm)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -145,6 +157,10 @@ class PoseArrays:
         Ideal (undistorted) image of the true circle centre.
     chi2 : (N,) ndarray
         Weighted squared residual of the chosen candidate's fit.
+    systematic_mm2 : (N, 3, 3) ndarray or None
+        Covariance of the position's systematic error, beside ``covariance_mm2`` (its scatter):
+        the error a pose circle's known fit bias (``Ellipse.systematic_px``) makes, the same in
+        every image of the scene; None where no fit has one.
     """
 
     position_mm: F64
@@ -154,6 +170,7 @@ class PoseArrays:
     ambiguity: F64
     center_px: F64
     chi2: F64
+    systematic_mm2: F64 | None = None
 
 
 def detections_to_arrays(
@@ -175,9 +192,9 @@ def detections_to_arrays(
 
 
 def detection_columns(dets: Sequence[FiducialDetection]) -> tuple[F64, F64]:
-    """The detections' ellipses as columns: ``(u, v, semi_major, semi_minor, angle, radius)``
-    ``(6, K, N)`` and covariances ``(5, 5, K, N)`` (circle ``k`` of detection ``n`` at
-    ``[..., k, n]``; NaN where a detection has fewer than ``K`` ellipses).
+    """The detections' ellipses as columns: ``(u, v, semi_major, semi_minor, angle, radius,
+    systematic_px)`` ``(7, K, N)`` and covariances ``(5, 5, K, N)`` (circle ``k`` of detection
+    ``n`` at ``[..., k, n]``; NaN where a detection has fewer than ``K`` ellipses).
 
     Raises
     ------
@@ -194,11 +211,11 @@ def detection_columns(dets: Sequence[FiducialDetection]) -> tuple[F64, F64]:
         # Circle-major order (circle 0 of every detection, then circle 1, ...): the gathered
         # columns are already (K, N) and need no transposing copy.
         values, covs = _ellipse_columns(list(chain.from_iterable(zip(*per_det, strict=True))))
-        return values.reshape(6, kc, n), covs.reshape(5, 5, kc, n)
+        return values.reshape(_COLUMNS, kc, n), covs.reshape(5, 5, kc, n)
     flat_values, flat_covs = _ellipse_columns(list(chain.from_iterable(per_det)))
     det_index = np.repeat(np.arange(n), counts)
     circle_index = np.concatenate([np.arange(c) for c in counts])
-    values = np.full((6, kc, n), np.nan)
+    values = np.full((_COLUMNS, kc, n), np.nan)
     values[:, circle_index, det_index] = flat_values
     covs = np.full((5, 5, kc, n), np.nan)
     covs[:, :, circle_index, det_index] = flat_covs.reshape(5, 5, -1)
@@ -208,7 +225,8 @@ def detection_columns(dets: Sequence[FiducialDetection]) -> tuple[F64, F64]:
 def ellipse_arrays(values: F64, covs: F64, outer_radius_mm: float) -> tuple[F64, F64, F64]:
     """:func:`estimate_arrays`' inputs from ellipse columns (see :func:`detection_columns`):
     ``(N, K, 5)`` observations, ``(N, K, 5, 5)`` covariances and ``(N, K)`` radii in mm (views
-    of ``(..., K, N)`` memory)."""
+    of ``(..., K, N)`` memory); the fits' systematic errors (row 6) are
+    :func:`estimate_arrays`' ``systematic_px``, ``values[6].T``."""
     obs, cov = _axes_to_params(values[:5], covs)
     return obs.transpose(2, 1, 0), cov.transpose(3, 2, 0, 1), values[5].T * outer_radius_mm
 
@@ -221,9 +239,11 @@ def estimate_ellipses(
 
     Parameters
     ----------
-    values : (6, K, N) ndarray
-        ``(u, v, semi_major, semi_minor, angle, radius)`` of circle ``k`` of fiducial ``n``
-        (distorted pixels; ``radius`` as a fraction of the outer radius; NaN: not fitted).
+    values : (7, K, N) ndarray
+        ``(u, v, semi_major, semi_minor, angle, radius, systematic_px)`` of circle ``k`` of
+        fiducial ``n`` (distorted pixels; ``radius`` as a fraction of the outer radius;
+        ``systematic_px`` the fit's known systematic error, ``Ellipse.systematic_px``; NaN: not
+        fitted).
     covs : (5, 5, K, N) ndarray
         Covariances of ``(u, v, semi_major, semi_minor, angle)``.
     outer_radius_mm : float
@@ -239,17 +259,20 @@ def estimate_ellipses(
         raise PoseError(f"outer radius must be a positive finite number, got {outer_radius_mm!r}")
     values = np.asarray(values, dtype=np.float64)
     covs = np.asarray(covs, dtype=np.float64)
-    if values.ndim != 3 or values.shape[0] != 6 or covs.shape != (5, 5, *values.shape[1:]):
+    if values.ndim != 3 or values.shape[0] != _COLUMNS or covs.shape != (5, 5, *values.shape[1:]):
         raise PoseError(
-            f"ellipse columns must be (6, K, N) and covariances (5, 5, K, N); got {values.shape}"
-            f", {covs.shape}"
+            f"ellipse columns must be ({_COLUMNS}, K, N) and covariances (5, 5, K, N); got "
+            f"{values.shape}, {covs.shape}"
         )
-    return estimate_arrays(*ellipse_arrays(values, covs, outer_radius_mm), camera)
+    return estimate_arrays(
+        *ellipse_arrays(values, covs, outer_radius_mm), camera, systematic_px=values[6].T
+    )
 
 
 def _ellipse_columns(ells: list[Ellipse]) -> tuple[F64, F64]:
-    """``(u, v, semi_major, semi_minor, angle, radius)`` ``(6, M)`` and the covariances
-    ``(25, M)`` of ``M`` ellipses, in their order (NaNs for covariances not of shape (5, 5)).
+    """``(u, v, semi_major, semi_minor, angle, radius, systematic_px)`` ``(7, M)`` and the
+    covariances ``(25, M)`` of ``M`` ellipses, in their order (NaNs for covariances not of
+    shape (5, 5)).
 
     One list comprehension per attribute and ``np.fromiter`` over the lists: the cheapest way
     from hundreds of small objects to arrays (a comprehension reads a slot faster than
@@ -257,7 +280,7 @@ def _ellipse_columns(ells: list[Ellipse]) -> tuple[F64, F64]:
     ``np.array`` does).
     """
     m = len(ells)
-    values = np.empty((6, m))
+    values = np.empty((_COLUMNS, m))
     centers = [e.center_px for e in ells]
     try:
         # Unpacking also checks that each centre is a pair.
@@ -270,8 +293,11 @@ def _ellipse_columns(ells: list[Ellipse]) -> tuple[F64, F64]:
         values[3] = np.fromiter([e.semi_minor for e in ells], np.float64, count=m)
         values[4] = np.fromiter([e.angle for e in ells], np.float64, count=m)
         values[5] = np.fromiter([e.radius for e in ells], np.float64, count=m)
+        values[6] = np.fromiter([e.systematic_px for e in ells], np.float64, count=m)
     except (TypeError, ValueError) as err:
-        raise PoseError(f"ellipse axes, angle and radius must be numbers: {err}") from err
+        raise PoseError(
+            f"ellipse axes, angle, radius and systematic error must be numbers: {err}"
+        ) from err
     covs = _gather_covariances([e.covariance for e in ells]).reshape(m, 25)
     # A 2-D transposing copy (entries first) is several times cheaper than the 4-D one it
     # spares later.
@@ -347,6 +373,7 @@ def estimate_arrays(
     iterations: int = _GN_ITERATIONS,
     free_scale: bool = True,
     inner_floor_px: float = INNER_FLOOR_PX,
+    systematic_px: F64 | None = None,
 ) -> PoseArrays:
     """Vectorised core of :func:`estimate`.
 
@@ -369,6 +396,11 @@ def estimate_arrays(
         edges (see :func:`_gauss_newton`); False uses every circle's printed radius.
     inner_floor_px : float
         Systematic standard deviation added to each inner circle's parameters, pixels.
+    systematic_px : (N, K) ndarray, optional
+        Each fit's known systematic error, pixels (``Ellipse.systematic_px``; NaN or 0: none).
+        The pose circle's gives the position's systematic covariance (``systematic_mm2``), as
+        the pose moves with a size and a centre error of that sd (:func:`_systematic_covariance`);
+        ``covariance_mm2``, the fits' weights and the poses stay those of the fits' scatter.
 
     Returns
     -------
@@ -381,6 +413,14 @@ def estimate_arrays(
         raise PoseError(f"obs must be (N, K, 5) and cov (N, K, 5, 5); got {obs.shape}, {cov.shape}")
     if radius_mm.shape != obs.shape[:2]:
         raise PoseError(f"radius_mm must be {obs.shape[:2]}, got {radius_mm.shape}")
+    pose_sys = None
+    if systematic_px is not None:
+        sys_px = np.asarray(systematic_px, dtype=np.float64)
+        if sys_px.shape != obs.shape[:2]:
+            raise PoseError(f"systematic_px must be {obs.shape[:2]}, got {sys_px.shape}")
+        s0 = sys_px[:, 0]
+        if np.any(s0 > 0):  # (NaN compares False)
+            pose_sys = np.where(s0 > 0, s0, 0.0)
     n, kc = obs.shape[:2]
     K = camera.K
     # Internally every stack of small vectors and matrices keeps its component axes first, then
@@ -399,6 +439,11 @@ def estimate_arrays(
     everything = bool(present.all())
     safe_obs = obs_t if everything else np.where(present, obs_t, _NOMINAL_ELLIPSE)
     safe_r = r_t if everything else np.where(present, r_t, 1.0)
+    if pose_sys is not None:
+        # The pose circle's semi-major axis (ideal pixels), before the observations are
+        # normalised: the shape block's larger eigenvalue.
+        s11, s12, s22 = safe_obs[2:5, 0]
+        pose_a_px = 0.5 * (s11 + s22) + np.sqrt(0.25 * (s11 - s22) ** 2 + s12 * s12)
     # The ambiguity test uses the fits' own covariances (the inner circles' geometry relative to
     # the pose circle is what tells the candidates apart); the refinement adds the systematic
     # floor to the inner circles, as a scalar deflation (sigma^2 / (sigma^2 + floor^2)).
@@ -462,6 +507,11 @@ def estimate_arrays(
         fixed=arcs if arcs.any() else None,
     )
     cov_best = 0.5 * (cov_c + np.swapaxes(cov_c, 0, 1))  # (3, 3, N)
+    systematic = None
+    if pose_sys is not None:
+        focal = 0.5 * (K[0, 0] + K[1, 1])
+        bias = _systematic_covariance(c_best, pose_sys, pose_a_px, focal)
+        systematic = np.ascontiguousarray(bias.transpose(2, 0, 1))
     c = centers.copy()
     # The other candidate moves as the refinement moved the better one: the closed form rests
     # on the pose circle alone, and where larger circles carry the depth (a ``dot`` fiducial's
@@ -484,7 +534,27 @@ def estimate_arrays(
         np.minimum(w0, w1),
         np.ascontiguousarray(center_px),
         chi2,
+        systematic,
     )
+
+
+def _systematic_covariance(center: F64, sd_px: F64, semi_major_px: F64, focal_px: float) -> F64:
+    """Position covariance ``(3, 3, N)`` that a systematic error of sd ``sd_px`` in a pose
+    circle's size and centre makes: a circle ``a`` pixels across at distance ``d`` is ``d delta /
+    a`` nearer or farther when its image is ``delta`` larger or smaller (depth is inversely
+    proportional to the image's size), and ``d delta / f`` aside when its centre is ``delta``
+    off. (First order; the slant's share in the semi-minor axis is left out, as the size error
+    of a biased fit is nearly the same along both axes.)"""
+    d = np.sqrt(np.einsum("i...,i...->...", center, center))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ray = center / d
+        along = (d * sd_px / semi_major_px) ** 2
+        across = (d * sd_px / focal_px) ** 2
+    along = np.where(sd_px > 0, along, 0.0)
+    across = np.where(sd_px > 0, across, 0.0)
+    outer = np.where(sd_px > 0, ray[:, None] * ray[None, :], 0.0)
+    eye = np.eye(3).reshape(3, 3, *([1] * (center.ndim - 1)))
+    return np.asarray(along * outer + across * (eye - outer))
 
 
 def likelihood_weight(dchi: F64 | float) -> F64:

@@ -52,8 +52,9 @@ def fuse_poses(poses: Sequence[FiducialPose], *, gate: float = CHI2_3_999) -> Fi
     -------
     FiducialPose
         Inverse-covariance-weighted position of the inlier frames, their mean normal, the fused
-        covariance (inflated by the reduced chi-square when that exceeds 1) and ``n_frames`` = the
-        number of inlier frames; ``detection`` is None.
+        covariance (inflated by the reduced chi-square when that exceeds 1), ``n_frames`` = the
+        number of inlier frames, and the mean of their systematic covariances (a bias common to
+        the frames does not average out; None when none has one); ``detection`` is None.
 
     Raises
     ------
@@ -90,6 +91,10 @@ def fuse_poses(poses: Sequence[FiducialPose], *, gate: float = CHI2_3_999) -> Fi
         cov = cov * max(1.0, chi2 / (3.0 * (k - 1)))
     normal = np.sum(N[inlier], axis=0)
     normal /= np.linalg.norm(normal)
+    biased = [p.systematic_mm2 for p, kept in zip(poses, inlier, strict=True) if kept]
+    systematic = None
+    if any(b is not None for b in biased):
+        systematic = np.mean([np.zeros((3, 3)) if b is None else b for b in biased], axis=0)
     return FiducialPose(
         code=poses[0].code,
         position_mm=centre,
@@ -97,6 +102,7 @@ def fuse_poses(poses: Sequence[FiducialPose], *, gate: float = CHI2_3_999) -> Fi
         covariance_mm2=cov,
         detection=None,
         n_frames=k,
+        systematic_mm2=systematic,
     )
 
 
@@ -614,6 +620,7 @@ def moved_poses(poses: Sequence[FiducialPose], R: F64, t: F64) -> list[FiducialP
             R @ p.covariance_mm2 @ R.T,
             p.detection,
             p.n_frames,
+            None if p.systematic_mm2 is None else R @ p.systematic_mm2 @ R.T,
         )
         for p in poses
     ]

@@ -31,6 +31,12 @@ class FiducialPose:
         The detection it was estimated from (None for fused or synthetic poses).
     n_frames : int
         Number of frames fused into this pose.
+    systematic_mm2 : (3, 3) ndarray or None
+        Covariance of the position's systematic error, beside ``covariance_mm2`` (the scatter
+        from image to image, which the matcher weighs by and fusion averages down): the error
+        a known bias of its pose circle's fit makes (``Ellipse.systematic_px``), the same in
+        every image of the scene, so neither fusing frames nor a displacement between two
+        states fitted alike reduces it. None: no known bias.
     """
 
     code: int
@@ -39,11 +45,19 @@ class FiducialPose:
     covariance_mm2: NDArray[np.float64]
     detection: FiducialDetection | None = None
     n_frames: int = 1
+    systematic_mm2: NDArray[np.float64] | None = None
 
     @property
     def sigma_mm(self) -> NDArray[np.float64]:
-        """Standard deviations of x, y and z, mm."""
+        """Standard deviations of x, y and z, mm (the scatter, ``covariance_mm2``)."""
         return np.sqrt(np.clip(np.diag(self.covariance_mm2), 0.0, None))
+
+    @property
+    def systematic_sigma_mm(self) -> NDArray[np.float64]:
+        """Standard deviations of the systematic error of x, y and z, mm (0: none known)."""
+        if self.systematic_mm2 is None:
+            return np.zeros(3)
+        return np.sqrt(np.clip(np.diag(self.systematic_mm2), 0.0, None))
 
     @classmethod
     def from_rows(
@@ -53,9 +67,10 @@ class FiducialPose:
         normals: Iterable[NDArray[np.float64]],
         covariances_mm2: Iterable[NDArray[np.float64]],
         detections: Iterable[FiducialDetection | None],
+        systematic_mm2: Iterable[NDArray[np.float64] | None] | None = None,
     ) -> list[FiducialPose]:
         """Single-frame poses, one per item of the parallel iterables (as the constructor makes
-        them, ``n_frames = 1``).
+        them, ``n_frames = 1``; ``systematic_mm2`` None: no pose has a known bias).
 
         The estimator makes hundreds per frame; the generated ``__init__`` of a frozen dataclass
         costs a slow ``object.__setattr__`` call per field, so the slots are filled directly, one
@@ -74,6 +89,11 @@ class FiducialPose:
             raise ValueError(f"from_rows needs parallel iterables of one length, got {sizes}")
         out: list[FiducialPose] = list(map(object.__new__, repeat(cls, n)))
         columns["n_frames"] = [1] * n
+        columns["systematic_mm2"] = [None] * n if systematic_mm2 is None else list(systematic_mm2)
+        if len(columns["systematic_mm2"]) != n:
+            raise ValueError(
+                f"from_rows got {len(columns['systematic_mm2'])} systematic_mm2 for {n}"
+            )
         for name, values in columns.items():
             _consume(map(getattr(cls, name).__set__, out, values))
         return out

@@ -57,7 +57,15 @@ def test_json_output(tmp_path: Path, scene_image: np.ndarray, capsys) -> None:  
     assert np.allclose(dets[1]["center_px"], [209.5, 99.5], atol=0.05)
     ring = dets[0]
     assert [e["radius"] for e in ring["ellipses"]] == [1.0, 0.8, 0.24]
-    for key in ("center_px", "semi_major", "semi_minor", "angle", "radius", "sigma_center_px"):
+    for key in (
+        "center_px",
+        "semi_major",
+        "semi_minor",
+        "angle",
+        "radius",
+        "sigma_center_px",
+        "systematic_px",
+    ):
         assert key in ring["ellipses"][0]
     assert ring["hamming"] == 0 and 0.5 < ring["contrast"] < 0.9
     _, out, _ = _run(capsys, str(path), "--json", "--design", "dot")

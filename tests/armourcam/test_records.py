@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +38,7 @@ def _detection(rng: np.random.Generator, design: str, n_ellipses: int) -> Fiduci
             covariance=_spd(rng, 5) * 1e-4,
             radius=float(rng.uniform(0.2, 1.0)),
             rms_residual=float(rng.uniform(0, 0.1)),
+            systematic_px=float(rng.choice([0.0, 0.05])),
         )
         for _ in range(n_ellipses)
     )
@@ -70,7 +72,11 @@ def _assert_detections_equal(a: FiducialDetection, b: FiducialDetection) -> None
     for ea, eb in zip(a.ellipses, b.ellipses, strict=True):
         assert ea.center_px == eb.center_px
         assert (ea.semi_major, ea.semi_minor, ea.angle) == (eb.semi_major, eb.semi_minor, eb.angle)
-        assert (ea.radius, ea.rms_residual) == (eb.radius, eb.rms_residual)
+        assert (ea.radius, ea.rms_residual, ea.systematic_px) == (
+            eb.radius,
+            eb.rms_residual,
+            eb.systematic_px,
+        )
         np.testing.assert_array_equal(ea.covariance, eb.covariance)
 
 
@@ -192,6 +198,8 @@ def test_poses_round_trip_exactly_with_detection_links() -> None:
     rng = np.random.default_rng(99)
     dets = [_detection(rng, "ring", 3) for _ in range(6)]
     poses = [_pose(rng, dets[k]) for k in (4, 0, 2)] + [_pose(rng, None)]
+    # One pose with a known fit bias (its systematic covariance), the others without.
+    poses[1] = replace(poses[1], systematic_mm2=_spd(rng, 3) * 1e-2)
     recs = _through_cloud("FiducialPoseRecord", records.poses_to_records(poses, dets))
     assert recs["detection_index"].tolist() == [4, 0, 2, -1]
     assert recs["u"][0] == dets[4].center_px[0] and np.isnan(recs["u"][3])
@@ -201,7 +209,12 @@ def test_poses_round_trip_exactly_with_detection_links() -> None:
         np.testing.assert_array_equal(a.position_mm, b.position_mm)
         np.testing.assert_array_equal(a.normal, b.normal)
         np.testing.assert_array_equal(a.covariance_mm2, b.covariance_mm2)
+        if a.systematic_mm2 is None:
+            assert b.systematic_mm2 is None
+        else:
+            np.testing.assert_array_equal(a.systematic_mm2, b.systematic_mm2)
         assert a.detection is b.detection
+    assert [p.systematic_mm2 is not None for p in back] == [False, True, False, False]
     assert all(p.detection is None for p in records.records_to_poses(recs))
     bad = FiducialPose(-3, poses[0].position_mm, poses[0].normal, poses[0].covariance_mm2)
     with pytest.raises(RecordError, match=r"pose 1: code -3 outside 0\.\.4294967295"):
@@ -334,10 +347,12 @@ def test_mismatched_clouds_are_refused() -> None:
         extra["code"][0]
         == records.decode("FiducialPoseRecord", fields, enc.point_step, enc.data, 1)["code"][0]
     )
-    with pytest.raises(RecordError, match="data has 127 bytes"):
+    with pytest.raises(RecordError, match=f"data has {enc.point_step - 1} bytes"):
         dec(fields, enc.data[:-1])
     outside = [
-        records.PointFieldSpec(f.name, 125, f.datatype, f.count) if f.name == "x" else f
+        records.PointFieldSpec(f.name, enc.point_step - 3, f.datatype, f.count)
+        if f.name == "x"
+        else f
         for f in fields
     ]
     with pytest.raises(RecordError, match="outside point_step"):

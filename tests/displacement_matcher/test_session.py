@@ -924,3 +924,26 @@ def test_a_camera_moved_during_a_run_is_warned(rng: np.random.Generator) -> None
         f"run {run} against the baseline",
         f"run {run} against the previous run",
     ], notices
+
+
+def test_saved_poses_keep_their_systematic_covariance() -> None:
+    """A baseline written to disk and read back after a restart keeps each pose's systematic
+    covariance (a known fit bias), and a pose without one stays without; baselines saved before
+    the field existed read as without."""
+    bias = np.diag([0.01, 0.02, 3.0])
+    poses = [
+        FiducialPose(3, np.array([1.0, 2.0, 900.0]), np.array([0.0, 0.0, -1.0]), np.eye(3), None),
+        FiducialPose(
+            17, np.array([5.0, 2.0, 910.0]), np.array([0.0, 0.6, -0.8]), np.eye(3), None, 4, bias
+        ),
+    ]
+    back = [
+        session_module.pose_from_dict(json.loads(json.dumps(session_module.pose_to_dict(p))))
+        for p in poses
+    ]
+    assert back[0].systematic_mm2 is None
+    assert back[1].systematic_mm2 is not None and back[1].n_frames == 4
+    np.testing.assert_array_equal(back[1].systematic_mm2, bias)
+    old = session_module.pose_to_dict(poses[1])
+    del old["systematic_mm2"]
+    assert session_module.pose_from_dict(old).systematic_mm2 is None

@@ -166,6 +166,7 @@ def _detected_poses(
     seed: int,
     noise: float = 0.01,
     jpeg_quality: int | None = None,
+    blur: float = 0.5,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Positions and sigmas of ``n`` rendered (optionally JPEG-compressed), detected and posed
     images."""
@@ -177,7 +178,7 @@ def _detected_poses(
     rng = np.random.default_rng(seed)
     pos, sig = [], []
     for _ in range(n):
-        scene = render(camera, [target], blur_sigma=0.5, noise=noise, rng=rng)
+        scene = render(camera, [target], blur_sigma=blur, noise=noise, rng=rng)
         image = scene.image
         if jpeg_quality is not None:
             _, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
@@ -219,6 +220,72 @@ def test_sigma_is_honest_end_to_end_at_low_noise(size_px: int, slant_deg: float)
     pred = np.sqrt(np.mean(sig**2, axis=0))
     emp = np.std(pos, axis=0, ddof=1)
     np.testing.assert_array_less(np.abs(pred / emp - 1.0), 0.3)
+
+
+def test_dual_conic_pose_circle_carries_its_bias_to_the_pose() -> None:
+    """A ``dot`` fiducial of 35 px at 44 deg under 0.7 px of blur: the profiles keep too few of
+    its dot's lines, and the dual conic it falls back to fits the dot 0.05-0.08 px large, the
+    same in every image. The depth is then off by many times the sd of the fit's scatter alone;
+    with the fit's systematic error (``DUAL_CONIC_SYSTEMATIC_PX``), which the pose reports beside
+    its scatter, within three sds of both together, at the same positions."""
+    from dataclasses import replace
+
+    from fiducial_detector.detect import DUAL_CONIC_SYSTEMATIC_PX
+
+    z = F_PX * 7.1 / 35
+    cam = CameraModel.ideal(76, 76, F_PX)
+    target = _target("dot", 44.0, (0.3, -0.2, z), tilt=0.0)
+    rng = np.random.default_rng(9)
+    from armourcam.render import render
+    from fiducial_detector import detect
+
+    for _ in range(6):
+        scene = render(cam, [target], blur_sigma=0.7, noise=0.01, rng=rng)
+        (det,) = [d for d in detect(scene.image, design="dot") if d.code == target.code]
+        assert det.ellipses[0].systematic_px == DUAL_CONIC_SYSTEMATIC_PX
+        assert all(e.systematic_px == 0.0 for e in det.ellipses[1:])
+        plain_fit = replace(det.ellipses[0], systematic_px=0.0)
+        scatter_only = replace(det, ellipses=(plain_fit, *det.ellipses[1:]))
+        (pose,) = estimate([det], cam, 7.1)
+        (plain,) = estimate([scatter_only], cam, 7.1)
+        np.testing.assert_array_equal(pose.position_mm, plain.position_mm)
+        np.testing.assert_array_equal(pose.covariance_mm2, plain.covariance_mm2)
+        assert plain.systematic_mm2 is None and pose.systematic_mm2 is not None
+        dz = abs(pose.position_mm[2] - target.position_mm[2])
+        assert dz > 3.0 * pose.sigma_mm[2]
+        assert dz < 3.0 * np.hypot(pose.sigma_mm[2], pose.systematic_sigma_mm[2])
+
+
+def test_pose_circle_systematic_error_gives_the_pose_its_systematic_covariance() -> None:
+    """A pose circle's systematic error of sd ``delta`` (``Ellipse.systematic_px``) leaves the
+    pose and its covariance (the scatter) where the fits put them; its systematic covariance is
+    what a size error of that sd does to depth, ``d delta / a`` along the line of sight, and a
+    centre error across it, ``d delta / f``. An inner circle's is not the pose circle's (it
+    carries no depth)."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(11)
+    delta = 0.05
+    for slant in (10.0, 50.0, 70.0):
+        det = synthetic_detection(CAMERA, _target("ring", slant, (30.0, -20.0, 900.0)), 0.02, rng)
+        pose_circle, *inner = det.ellipses
+        biased = replace(det, ellipses=(replace(pose_circle, systematic_px=delta), *inner))
+        inner_sys = (pose_circle, replace(inner[0], systematic_px=delta), *inner[1:])
+        (plain,) = estimate([det], CAMERA, 7.1)
+        (wide,) = estimate([biased], CAMERA, 7.1)
+        (same,) = estimate([replace(det, ellipses=inner_sys)], CAMERA, 7.1)
+        np.testing.assert_array_equal(wide.position_mm, plain.position_mm)
+        np.testing.assert_array_equal(wide.covariance_mm2, plain.covariance_mm2)
+        assert plain.systematic_mm2 is None and same.systematic_mm2 is None
+        assert wide.systematic_mm2 is not None
+        d = float(np.linalg.norm(plain.position_mm))
+        ray = plain.position_mm / d
+        across = np.cross(ray, [1.0, 0.0, 0.0])
+        across /= np.linalg.norm(across)
+        extra = wide.systematic_mm2
+        np.testing.assert_allclose(ray @ extra @ ray, (d * delta / pose_circle.semi_major) ** 2)
+        np.testing.assert_allclose(across @ extra @ across, (d * delta / F_PX) ** 2)
+        np.testing.assert_allclose(across @ extra @ ray, 0.0, atol=1e-12)
 
 
 def test_depth_sigma_stays_honest_on_jpeg_frames() -> None:
@@ -600,10 +667,16 @@ def test_records_path_equals_estimate_on_objects() -> None:
         target = _target(design, slant, (20.0 * k - 80.0, 15.0 - 4.0 * k, 700.0 + 9.0 * k))
         dets.append(synthetic_detection(CAMERA, target, 0.02, rng))
     dets[4] = replace(dets[4], ellipses=dets[4].ellipses[:2])
+    # A dual-conic pose circle's systematic error travels with the records too.
+    stand_in = replace(dets[2].ellipses[0], systematic_px=0.05)
+    dets[2] = replace(dets[2], ellipses=(stand_in, *dets[2].ellipses[1:]))
     flat = replace(dets[7].ellipses[0], semi_minor=0.0)  # not an ellipse: no pose
     dets[7] = replace(dets[7], ellipses=(flat,))
     recs = records.detections_to_records(dets)
     decoded = records.records_to_detections(recs)
+    assert [e.systematic_px for e in decoded[2].ellipses] == [0.05] + [0.0] * (
+        len(dets[2].ellipses) - 1
+    )
     expected = records.poses_to_records(estimate(decoded, CAMERA, 7.1), decoded)
 
     got = records.estimate_pose_records(recs, CAMERA, 7.1)

@@ -48,6 +48,24 @@ def test_fusion_averages_frames_with_honest_covariance() -> None:
     assert 1.8 < np.mean(m2) < 4.5
 
 
+def test_fusion_keeps_a_bias_common_to_the_frames() -> None:
+    """A pose's systematic covariance (a known bias of its fit, the same in every frame) is not
+    averaged down by fusing frames, as the scatter is: the fused pose keeps the frames' mean."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(6)
+    bias = np.diag([0.01, 0.01, 4.0])
+    frames = [
+        [replace(p, systematic_mm2=bias) if k == 0 else p for k, p in enumerate(frame)]
+        for frame in _frames(8, rng)
+    ]
+    fused = sorted(fuse(frames), key=lambda p: p.position_mm[0])
+    assert [p.systematic_mm2 is not None for p in fused] == [True, False, False]
+    np.testing.assert_allclose(fused[0].systematic_mm2, bias)
+    assert fused[0].covariance_mm2[2, 2] < frames[0][0].covariance_mm2[2, 2] / 4.0
+    np.testing.assert_allclose(fused[0].systematic_sigma_mm, [0.1, 0.1, 2.0])
+
+
 def test_fusion_rejects_an_outlier_frame() -> None:
     """A frame with a grossly wrong pose (e.g. the wrong ambiguity branch) is left out."""
     rng = np.random.default_rng(8)

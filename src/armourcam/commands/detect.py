@@ -107,7 +107,8 @@ def _diameter(text: str) -> float:
 
 def ellipse_record(ellipse: Ellipse) -> dict[str, Any]:
     """JSON record of one fitted ellipse (pixels, radians; ``radius`` = nominal printed radius as
-    a fraction of the outer radius; ``sigma_center_px`` = standard deviations of u and v)."""
+    a fraction of the outer radius; ``sigma_center_px`` = standard deviations of u and v;
+    ``systematic_px`` = the fit method's known systematic error, ``Ellipse.systematic_px``)."""
     cov = np.asarray(ellipse.covariance, dtype=np.float64)
     sigma = np.sqrt(np.maximum(np.diag(cov)[:2], 0.0)) if cov.shape == (5, 5) else np.zeros(2)
     return {
@@ -117,6 +118,7 @@ def ellipse_record(ellipse: Ellipse) -> dict[str, Any]:
         "angle": float(ellipse.angle),
         "radius": float(ellipse.radius),
         "sigma_center_px": [float(sigma[0]), float(sigma[1])],
+        "systematic_px": float(ellipse.systematic_px),
     }
 
 
@@ -144,15 +146,18 @@ def pose_record(pose: FiducialPose | None) -> dict[str, Any]:
     """Pose fields of one detection (camera frame: x right, y down, z forward; millimetres).
 
     ``position_mm`` [x, y, z] of the fiducial's centre, unit ``normal`` [nx, ny, nz] out of the
-    printed face, ``sigma_mm`` [sx, sy, sz] standard deviations; all None when the pose circle
-    gives no real pose.
+    printed face, ``sigma_mm`` [sx, sy, sz] standard deviations (the scatter from image to
+    image), ``systematic_sigma_mm`` [sx, sy, sz] those of a known fit bias, the same in every
+    image (zeros for most fiducials; see ``FiducialPose.systematic_mm2``); all None when the pose
+    circle gives no real pose.
     """
     if pose is None:
-        return {"position_mm": None, "normal": None, "sigma_mm": None}
+        return {"position_mm": None, "normal": None, "sigma_mm": None, "systematic_sigma_mm": None}
     return {
         "position_mm": [float(x) for x in pose.position_mm],
         "normal": [float(x) for x in pose.normal],
         "sigma_mm": [float(x) for x in pose.sigma_mm],
+        "systematic_sigma_mm": [float(x) for x in pose.systematic_sigma_mm],
     }
 
 
