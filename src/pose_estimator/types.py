@@ -83,17 +83,15 @@ class FiducialPose:
             "covariance_mm2": list(covariances_mm2),
             "detection": list(detections),
         }
+        if systematic_mm2 is not None:
+            columns["systematic_mm2"] = list(systematic_mm2)
         n = len(columns["code"])
         if any(len(values) != n for values in columns.values()):
             sizes = {name: len(values) for name, values in columns.items()}
             raise ValueError(f"from_rows needs parallel iterables of one length, got {sizes}")
         out: list[FiducialPose] = list(map(object.__new__, repeat(cls, n)))
         columns["n_frames"] = [1] * n
-        columns["systematic_mm2"] = [None] * n if systematic_mm2 is None else list(systematic_mm2)
-        if len(columns["systematic_mm2"]) != n:
-            raise ValueError(
-                f"from_rows got {len(columns['systematic_mm2'])} systematic_mm2 for {n}"
-            )
+        columns.setdefault("systematic_mm2", [None] * n)
         for name, values in columns.items():
             _consume(map(getattr(cls, name).__set__, out, values))
         return out
