@@ -53,6 +53,7 @@ from .batched import spd_inverse
 from .camera import CameraModel
 from .conic_pose import (
     CircleImage,
+    axes_from_params,
     circle_image_t,
     circle_params_jacobian_t,
     circle_pose_t,
@@ -441,9 +442,8 @@ def estimate_arrays(
     safe_r = r_t if everything else np.where(present, r_t, 1.0)
     if pose_sys is not None:
         # The pose circle's semi-major axis (ideal pixels), before the observations are
-        # normalised: the shape block's larger eigenvalue.
-        s11, s12, s22 = safe_obs[2:5, 0]
-        pose_a_px = 0.5 * (s11 + s22) + np.sqrt(0.25 * (s11 - s22) ** 2 + s12 * s12)
+        # normalised.
+        pose_a_px = axes_from_params(safe_obs[:, 0].T)[:, 2]
     # The ambiguity test uses the fits' own covariances (the inner circles' geometry relative to
     # the pose circle is what tells the candidates apart); the refinement adds the systematic
     # floor to the inner circles, as a scalar deflation (sigma^2 / (sigma^2 + floor^2)).
@@ -546,13 +546,10 @@ def _systematic_covariance(center: F64, sd_px: F64, semi_major_px: F64, focal_px
     off. (First order; the slant's share in the semi-minor axis is left out, as the size error
     of a biased fit is nearly the same along both axes.)"""
     d = np.sqrt(np.einsum("i...,i...->...", center, center))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ray = center / d
-        along = (d * sd_px / semi_major_px) ** 2
-        across = (d * sd_px / focal_px) ** 2
-    along = np.where(sd_px > 0, along, 0.0)
-    across = np.where(sd_px > 0, across, 0.0)
-    outer = np.where(sd_px > 0, ray[:, None] * ray[None, :], 0.0)
+    ray = center / d  # (the refined centres are finite and in front of the camera)
+    along = (d * sd_px / semi_major_px) ** 2
+    across = (d * sd_px / focal_px) ** 2
+    outer = ray[:, None] * ray[None, :]
     eye = np.eye(3).reshape(3, 3, *([1] * (center.ndim - 1)))
     return np.asarray(along * outer + across * (eye - outer))
 
