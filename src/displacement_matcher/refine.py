@@ -77,7 +77,8 @@ COVER_DEPTH_MM = 5.0
 #: A current unit whose other faces all lie this far from a baseline unit's faces of their codes
 #: is not that unit seen in place through a face it shows there (:func:`_coherent_in_place`;
 #: on the 30 dolos fields such stand-ins' other faces lie 24-61 mm away, a still unit's posed
-#: off 16 mm).
+#: off 16 mm). A stranger's lone pair from nearer than this into a face that a unit shows in
+#: place may be the stranger's own after a small move, and stands (:func:`_hidden_face_shown`).
 ELSEWHERE_MM = 20.0
 
 
@@ -1086,7 +1087,8 @@ def _hidden_face_shown(
     unit moved mostly along the line of sight, which one image barely measures, still fits its
     old place: its own face fits both, and tells nothing). Current fiducials held by a pair seen
     in place are another unit's. The shown fiducial is the unit's own, so a pair another
-    baseline fiducial made into it (a same-code stranger's) is ruled out too. Returns such
+    baseline fiducial made into it (a same-code stranger's) is ruled out too, and so is a
+    stranger's lone pair into such a face of a unit none of whose faces matched. Returns such
     pairs (30 dolos-field seeds, template map: still units counted displaced 19 -> 14, false
     displaced 37 -> 31, missed 60 -> 59; with the stranger's pair and lone pairs of units
     called overturned, a pair across codes most often, 3 -> 2 and 22 / 32 -> 20 / 32)."""
@@ -1123,6 +1125,27 @@ def _hidden_face_shown(
                 if k is not None:
                     out.add((k, c))
                 break
+    # A unit none of whose faces matched (its one face hidden now, most often) may show such a
+    # face too, held by the lone pair of a stranger come from elsewhere (ELSEWHERE_MM across
+    # the line of sight: nearer, the face is as likely the stranger's own after a small move):
+    # that pair is ruled out alike.
+    for u in units:
+        if u.n_matched or not u.baseline_indices:
+            continue
+        faces = [baseline[k] for k in u.baseline_indices]
+        centre = np.mean([f.position_mm for f in faces], axis=0)
+        held = [
+            c
+            for c in sorted(tree.query_ball_point(centre, span_mm + 10.0))
+            if held_by.get(c) in lone
+            and c not in still_faces
+            and not seen_in_place(
+                current[c].position_mm, baseline[held_by[c]].position_mm, ELSEWHERE_MM
+            )
+        ]
+        shown = next(faces_shown_in_place(faces, current, held, template), None)
+        if shown is not None:
+            out.add((held_by[shown], shown))
     return out
 
 

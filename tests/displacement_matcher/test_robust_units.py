@@ -734,6 +734,28 @@ def test_face_shown_in_place_is_the_still_units_not_a_turned_neighbours() -> Non
     assert set(turned.current_indices) == set(doc["mover_current_indices"])
 
 
+def test_face_shown_in_place_by_a_unit_that_matched_nothing_is_no_strangers() -> None:
+    """Recorded from an end-to-end dolos field (seed 20, physical blur, everything within 90 mm
+    of a still unit): the one face the still unit showed before the run (code 17) is hidden
+    after it and its code-29 face shows where it was. A neighbour turned over and moved 1.56 Dn:
+    of its old faces (codes 29, 3 and 17) none shows now, only its code-41 face. The global
+    matching paired the neighbour's code-29 face with the still unit's shown face (47 mm) and
+    gave the neighbour's code-41 face to the still unit, which matched nothing, as the face of
+    a unit turned over: a still unit counted displaced. The shown face fits the template with
+    the still unit's old face, so the stranger's lone pair into it is ruled out: the still unit
+    keeps it and is lost, not displaced, and the neighbour is called overturned through its own
+    face."""
+    _, units, _, doc = _recorded("hidden_face_shown_lost_seed20.json")
+    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    assert still.status != "displaced"
+    assert not still.overturned
+    assert set(doc["unit_current_indices"]) <= set(still.current_indices)
+    turned = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    assert set(turned.baseline_indices) == set(doc["mover_baseline_indices"])
+    assert turned.overturned
+    assert set(turned.current_indices) == set(doc["mover_current_indices"])
+
+
 @pytest.mark.parametrize("turn_deg", [0.0, 20.0])
 @pytest.mark.parametrize("move_mm", [(0.0, 35.0, -10.0), (-30.0, -20.0, 5.0)])
 def test_lost_unit_is_found_again_by_the_faces_it_shows_now(
