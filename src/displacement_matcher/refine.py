@@ -1091,7 +1091,9 @@ def _hidden_face_shown(
     stranger's lone pair into such a face of a unit none of whose faces matched. Returns such
     pairs (30 dolos-field seeds, template map: still units counted displaced 19 -> 14, false
     displaced 37 -> 31, missed 60 -> 59; with the stranger's pair and lone pairs of units
-    called overturned, a pair across codes most often, 3 -> 2 and 22 / 32 -> 20 / 32)."""
+    called overturned, a pair across codes most often, 3 -> 2 and 22 / 32 -> 20 / 32; with a
+    stranger's pair into a face shown by a unit that matched nothing, through a physical blur,
+    2 -> 1 and 20 / 17 -> 19 / 17)."""
     out: set[tuple[int, int]] = set()
     if not lone or not current:
         return out

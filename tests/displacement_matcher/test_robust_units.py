@@ -712,6 +712,22 @@ def test_lost_unit_showing_in_place_a_face_it_hid_is_not_relocated() -> None:
     assert summary.displaced_units == doc["true_displaced_units"]
 
 
+def _assert_shown_face_kept_and_neighbour_turned(name: str) -> None:
+    """In a recorded patch (:func:`_recorded`) of a still unit showing in place a face it hid
+    before, beside a neighbour that turned over: the still unit is neither displaced nor turned
+    over and keeps the face it shows, and the neighbour, whole, is turned over through its own
+    face."""
+    _, units, _, doc = _recorded(name)
+    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    assert still.status != "displaced"
+    assert not still.overturned
+    assert set(doc["unit_current_indices"]) <= set(still.current_indices)
+    turned = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    assert set(turned.baseline_indices) == set(doc["mover_baseline_indices"])
+    assert turned.overturned
+    assert set(turned.current_indices) == set(doc["mover_current_indices"])
+
+
 def test_face_shown_in_place_is_the_still_units_not_a_turned_neighbours() -> None:
     """Recorded from an end-to-end dolos field (seed 11, everything within 80 mm of a still
     unit): the one face the still unit showed before the run (code 17) is hidden after it and
@@ -723,15 +739,7 @@ def test_face_shown_in_place_is_the_still_units_not_a_turned_neighbours() -> Non
     still unit's old face: it is that unit's, so the pair across codes and the stranger's pair
     into the shown face are both ruled out; the still unit is not displaced and keeps its face,
     and the neighbour is called overturned through its own face."""
-    _, units, _, doc = _recorded("hidden_face_shown_seed11.json")
-    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
-    assert still.status != "displaced"
-    assert not still.overturned
-    assert set(doc["unit_current_indices"]) <= set(still.current_indices)
-    turned = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
-    assert set(turned.baseline_indices) == set(doc["mover_baseline_indices"])
-    assert turned.overturned
-    assert set(turned.current_indices) == set(doc["mover_current_indices"])
+    _assert_shown_face_kept_and_neighbour_turned("hidden_face_shown_seed11.json")
 
 
 def test_face_shown_in_place_by_a_unit_that_matched_nothing_is_no_strangers() -> None:
@@ -745,15 +753,7 @@ def test_face_shown_in_place_by_a_unit_that_matched_nothing_is_no_strangers() ->
     the still unit's old face, so the stranger's lone pair into it is ruled out: the still unit
     keeps it and is lost, not displaced, and the neighbour is called overturned through its own
     face."""
-    _, units, _, doc = _recorded("hidden_face_shown_lost_seed20.json")
-    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
-    assert still.status != "displaced"
-    assert not still.overturned
-    assert set(doc["unit_current_indices"]) <= set(still.current_indices)
-    turned = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
-    assert set(turned.baseline_indices) == set(doc["mover_baseline_indices"])
-    assert turned.overturned
-    assert set(turned.current_indices) == set(doc["mover_current_indices"])
+    _assert_shown_face_kept_and_neighbour_turned("hidden_face_shown_lost_seed20.json")
 
 
 @pytest.mark.parametrize("turn_deg", [0.0, 20.0])
