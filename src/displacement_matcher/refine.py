@@ -80,6 +80,13 @@ COVER_DEPTH_MM = 5.0
 #: off 16 mm). A stranger's lone pair from nearer than this into a face that a unit shows in
 #: place may be the stranger's own after a small move, and stands (:func:`_hidden_face_shown`).
 ELSEWHERE_MM = 20.0
+#: Share of a candidate unit motion's scatter (its pairs' offsets from the one translation,
+#: across the line of sight, summed) added to its length in :func:`assign_unit_groups`. A
+#: neighbour's faces reached only through a turn cost more than a unit's own reached straight
+#: (30 dolos fields: a unit moved 0.7 Dn towards the camera lost its group to a neighbour 40 mm
+#: away, turned 24 deg, on a tie; false displaced 19 -> 17). At full weight it also cost a mover
+#: that truly turned 20-30 deg its group (seed 17).
+SCATTER_WEIGHT = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -463,8 +470,9 @@ def assign_unit_groups(
     candidates when at least two codes are on both and their same-code pairs agree on one
     translation within ``tol_mm`` across the line of sight (two coherent fiducials are evidence
     one stranger is not). Costs follow the fiducial matching's (:func:`displacement_matcher.match`,
-    where a fiducial left unmatched costs half of ``gate_mm``): the motion costs
-    its length, each shared pair saves the current face's half gate and the baseline face's,
+    where a fiducial left unmatched costs half of ``gate_mm``): the motion costs its length
+    plus :data:`SCATTER_WEIGHT` of its pairs' scatter about it, each shared pair saves the
+    current face's half gate and the baseline face's,
     except that a unit every shared face of which has a current fiducial now in front of it
     (:func:`_covered`) is hidden there, not gone: its faces cost nothing unmatched, so its pairs
     save only the current halves. (Judged face by face, one covered face of a unit that moved
@@ -538,6 +546,7 @@ def assign_unit_groups(
     cols: list[int] = []
     motions: list[NDArray[np.float64]] = []
     shares: list[list[tuple[int, int]]] = []
+    spreads: list[float] = []
     for n, (_, ix) in enumerate(base_units):
         if not ix or n in still_units:
             continue
@@ -572,6 +581,7 @@ def assign_unit_groups(
             cols.append(c)
             motions.append(t)
             shares.append(shared)
+            spreads.append(float(np.sum(spread)))
     if not rows:
         return []
     ur = sorted(set(rows))
@@ -597,8 +607,10 @@ def assign_unit_groups(
     shared_faces = {i for pairs in shares for i, _ in pairs}
     gone = {i: not _covered(baseline, [i], front, front_sd) for i in shared_faces}
     costs = [
-        float(np.linalg.norm(t)) - 0.5 * gate_mm * len(pairs) * (1 + any(gone[i] for i, _ in pairs))
-        for t, pairs in zip(motions, shares, strict=True)
+        float(np.linalg.norm(t))
+        + SCATTER_WEIGHT * sp
+        - 0.5 * gate_mm * len(pairs) * (1 + any(gone[i] for i, _ in pairs))
+        for t, pairs, sp in zip(motions, shares, spreads, strict=True)
     ]
     cost[:, len(uc) :] = np.where(np.eye(len(ur), dtype=bool), 0.0, big)
     # Turned over where it was: the faces opposite to its old ones it shows now are explained,

@@ -756,6 +756,28 @@ def test_face_shown_in_place_by_a_unit_that_matched_nothing_is_no_strangers() ->
     _assert_shown_face_kept_and_neighbour_turned("hidden_face_shown_lost_seed20.json")
 
 
+def test_unit_reached_straight_keeps_its_group_from_a_turned_neighbour() -> None:
+    """Recorded from an end-to-end dolos field (seed 16, everything within 80 mm of a unit
+    that moved 0.71 Dn, 14 mm of it towards the camera, and shows its three old faces again):
+    its new faces lie in front of its old ones, so its old faces count as hidden there and its
+    pairs save only the current halves, while a neighbour that turned over 1.5 Dn away (its
+    codes 29 and 17 gone, its code-41 face shown) reaches two of those faces by a 40 mm motion
+    turned 24 deg and saves both halves: a tie, which gave the neighbour the group and called
+    the unit overturned, a unit not displaced counted displaced. The neighbour's pairs scatter
+    about its translation (the turn); the unit's agree: the unit keeps its faces, moved but not
+    displaced, by its own motion, and the neighbour is overturned through its code-41 face."""
+    _, units, _, doc = _recorded("turned_neighbour_tie_seed16.json")
+    mover = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    assert set(mover.baseline_indices) == set(doc["mover_baseline_indices"])
+    assert set(mover.current_indices) == set(doc["mover_current_indices"])
+    assert mover.status == "moved" and not mover.overturned
+    # The truth: the unit's centre moved (-2.8, 4.3, -13.7) mm.
+    np.testing.assert_allclose(mover.translation_mm, [-2.8, 4.3, -13.7], atol=1.5)
+    turned = next(u for u in units if doc["turned_baseline_indices"][0] in u.baseline_indices)
+    assert turned.overturned
+    assert set(turned.current_indices) == set(doc["turned_current_indices"])
+
+
 @pytest.mark.parametrize("turn_deg", [0.0, 20.0])
 @pytest.mark.parametrize("move_mm", [(0.0, 35.0, -10.0), (-30.0, -20.0, 5.0)])
 def test_lost_unit_is_found_again_by_the_faces_it_shows_now(
