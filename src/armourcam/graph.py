@@ -42,7 +42,6 @@ from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
-from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -552,7 +551,18 @@ def _run_nodes(
         return 1
     use_dds_profile()
     keep_freed_memory()  # per-frame temporaries stay in the process (armourcam.heap)
+    # rclpy's own handler takes SIGINT and SIGTERM: it shuts the context down, so that spin()
+    # returns between callbacks. It then calls the Python handler it found at init; Python's
+    # default one would raise KeyboardInterrupt at whatever line runs, inside a callback or
+    # rclpy's own executor and entity code (the suspected cause of a stopping node's rare
+    # SIGSEGV). This one only notes the signal.
+    stop_signals: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, _frame: stop_signals.append(signum))
     rclpy.init(args=list(argv))
+    if stop_signals:  # came before rclpy's handler was in place: stopped before starting
+        rclpy.try_shutdown()
+        signal.signal(signal.SIGINT, previous)
+        return 0
     executor = make_executor()
     nodes: list[Node] = []
     status = 0
@@ -560,14 +570,16 @@ def _run_nodes(
         for factory in factories:
             nodes.append(factory())
             executor.add_node(nodes[-1])
-        executor.spin()
+        if rclpy.ok():
+            executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except GraphError as err:
         print(f"error: {err}", file=sys.stderr)
         status = _STATUS_BAD_PARAMETERS
-    except RCLError:
-        # SIGTERM shuts the context down under the executor's feet; that is a clean stop.
+    except Exception:
+        # The signal shut the context down under a node being built or a callback publishing
+        # (RCLError, an invalid handle...): that is a clean stop; anything else is not.
         if rclpy.ok():
             raise
     finally:
@@ -575,6 +587,7 @@ def _run_nodes(
         for n in nodes:
             n.destroy_node()
         rclpy.try_shutdown()
+        signal.signal(signal.SIGINT, previous)
     return status
 
 
@@ -771,7 +784,8 @@ def describe_exit(returncode: int) -> str:
     return f"{returncode} ({name})"
 
 
-def _log_launcher(text: str) -> None:
+def log_launcher(text: str) -> None:
+    """One line of the ``armourcam graph`` launcher on stderr."""
     print(f"armourcam graph: {text}", file=sys.stderr, flush=True)
 
 
@@ -784,7 +798,7 @@ def supervise_processes(
     respawn_limit: int = RESPAWN_LIMIT,
     respawn_window_s: float = RESPAWN_WINDOW_S,
     poll_s: float = 0.2,
-    log: Callable[[str], None] = _log_launcher,
+    log: Callable[[str], None] = log_launcher,
 ) -> int:
     """Watch the nodes :func:`launch_processes` started until ``stopping()`` is true or a node's
     exit ends the graph; returns 0 or, when a node ended it, 1.
@@ -1189,6 +1203,8 @@ def replay_bag(
         t0_bag: int | None = None
         t0_wall = time.monotonic()
         for i, (topic, msgtype, t_ns, obj) in enumerate(items):
+            if not rclpy.ok():  # SIGINT or SIGTERM without a KeyboardInterrupt (see record)
+                break
             if rate is not None and not as_fast_as_consumed:
                 t0_bag = t_ns if t0_bag is None else t0_bag
                 due = t0_wall + (t_ns - t0_bag) / 1e9 / rate
@@ -1237,11 +1253,14 @@ def replay_bag(
                 progress(i + 1, total)
         if settle_s > 0:
             time.sleep(settle_s)
-        unacked = replayer.drain(drain_s)
+        unacked = replayer.drain(drain_s) if rclpy.ok() else []
         if unacked:
             node.get_logger().warning(
                 f"not acknowledged by every subscriber within {drain_s:.0f} s: {unacked}"
             )
+    except Exception:
+        if rclpy.ok():  # else a signal shut the context down under a call: a clean stop
+            raise
     finally:
         executor.shutdown()
         node.destroy_node()
@@ -1404,7 +1423,9 @@ def record_topics(
         with bagio.BagWriter(out) as writer:
             written = writer.counts
             recorder = _Recorder(node, writer, names, types or {})
-            while not stop.is_set():
+            # rclpy's handler shuts the context down on SIGINT or SIGTERM, also when the
+            # process started with SIGINT ignored (no KeyboardInterrupt then).
+            while not stop.is_set() and rclpy.ok():
                 recorder.follow_publishers()
                 executor.spin_once(timeout_sec=0.1)
                 now = time.monotonic()
@@ -1419,6 +1440,9 @@ def record_topics(
                     break
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if rclpy.ok():  # else a signal shut the context down under a call: a clean stop
+            raise
     finally:
         executor.shutdown()
         node.destroy_node()

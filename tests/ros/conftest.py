@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from rosutil import Nodes, Probe, Recorder
@@ -48,8 +49,8 @@ def recorder() -> Iterator[Callable[..., Recorder]]:
     """Starts recorders; each is stopped after the test whatever its outcome."""
     started: list[Recorder] = []
 
-    def start(bag: Path, *args: str) -> Recorder:
-        started.append(Recorder(bag, *args))
+    def start(bag: Path, *args: str, **popen: Any) -> Recorder:
+        started.append(Recorder(bag, *args, **popen))
         return started[-1]
 
     try:

@@ -8,6 +8,7 @@ Importing this module sets ``ROS_DOMAIN_ID`` (unique to the test run, derived fr
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -44,6 +45,7 @@ def ros_env() -> dict[str, str]:
     env["ROS_DOMAIN_ID"] = str(DOMAIN_ID)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env["PYTHONUNBUFFERED"] = "1"
+    env["PYTHONFAULTHANDLER"] = "1"  # a crash in a node leaves its Python stack in its log
     env["RCUTILS_LOGGING_BUFFERED_STREAM"] = "0"
     return env
 
@@ -202,6 +204,12 @@ def start_armourcam(*args: str, **popen: Any) -> subprocess.Popen[Any]:
     )
 
 
+def ignore_sigint() -> None:
+    """A ``preexec_fn``: the child starts with SIGINT ignored, as a non-interactive shell starts
+    a command it puts in the background (``armourcam record &`` in a rig's script)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def armourcam(*args: str, timeout: float = 90.0) -> subprocess.CompletedProcess[str]:
     """Run the ``armourcam`` command line as a separate process in the test's domain."""
     return subprocess.run(
@@ -216,9 +224,10 @@ def armourcam(*args: str, timeout: float = 90.0) -> subprocess.CompletedProcess[
 
 
 class Recorder:
-    """``armourcam record --out BAG ARGS...`` in its own process group; stderr read as it comes."""
+    """``armourcam record --out BAG ARGS...`` in its own process group; stderr read as it comes
+    (``popen``: more :class:`subprocess.Popen` arguments)."""
 
-    def __init__(self, bag: Path, *args: str) -> None:
+    def __init__(self, bag: Path, *args: str, **popen: Any) -> None:
         self.proc = start_armourcam(
             "record",
             "--out",
@@ -227,6 +236,7 @@ class Recorder:
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            **popen,
         )
         self.lines: list[str] = []
         self._reader = threading.Thread(target=self._read, daemon=True)

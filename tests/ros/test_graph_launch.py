@@ -10,9 +10,10 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
-from rosutil import Probe, ros_env, start_armourcam
+from rosutil import Probe, ignore_sigint, ros_env, start_armourcam
 
 from armourcam import graph
 
@@ -78,13 +79,7 @@ def test_nodes_end_when_the_launcher_is_killed(tmp_path: Path) -> None:
     kids: list[int] = []
     try:
         kids += _wait_for_nodes(launcher).values()
-        logs = [tmp_path / f"{n}.log" for n in graph.NODE_NAMES]
-        deadline = time.monotonic() + 30.0
-        # Until every node has started and logged its first line.
-        while not all(f.exists() and f.stat().st_size for f in logs):
-            if time.monotonic() > deadline:
-                break
-            time.sleep(0.1)
+        _wait_for_logs(tmp_path)
         assert len(kids) == 3, kids
         launcher.kill()
         launcher.wait(5.0)
@@ -238,13 +233,38 @@ def _node_pids(launcher: int) -> dict[str, int]:
     return out
 
 
-def _start_launcher(tmp_path: Path, *options: str) -> subprocess.Popen[bytes]:
+def _start_launcher(tmp_path: Path, *options: str, **popen: Any) -> subprocess.Popen[bytes]:
     """``armourcam graph`` with node logs in ``tmp_path`` and its own stderr in
-    ``tmp_path/launcher.err``."""
+    ``tmp_path/launcher.err`` (``popen``: more :class:`subprocess.Popen` arguments)."""
     with open(tmp_path / "launcher.err", "wb") as err:
         return start_armourcam(
-            "graph", "--log-dir", str(tmp_path), *options, stdout=subprocess.DEVNULL, stderr=err
+            "graph",
+            "--log-dir",
+            str(tmp_path),
+            *options,
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            **popen,
         )
+
+
+def test_a_launcher_started_with_sigint_ignored_still_stops_on_sigint(tmp_path: Path) -> None:
+    """A non-interactive shell starts a background command (`armourcam graph &` in a rig's
+    script) with SIGINT ignored, and Python then leaves it ignored: the launcher used to sit
+    through SIGINT until it was killed. It takes SIGINT itself, stops its nodes, each with
+    status 0, and ends with 0."""
+    launcher = _start_launcher(tmp_path, preexec_fn=ignore_sigint)
+    kids: list[int] = []
+    try:
+        kids += _wait_for_nodes(launcher).values()
+        _wait_for_logs(tmp_path)  # the nodes are up, their signal handlers in place
+        os.killpg(launcher.pid, signal.SIGINT)
+        assert launcher.wait(15.0) == 0
+        assert all(_gone(k) for k in kids), [_state(k) for k in kids if not _gone(k)]
+        err = (tmp_path / "launcher.err").read_text()
+        assert "stopped with" not in err, err  # every node ended cleanly, none killed
+    finally:
+        _end(launcher, kids)
 
 
 def _wait_for_nodes(launcher: subprocess.Popen[bytes], timeout: float = 30.0) -> dict[str, int]:
@@ -256,6 +276,16 @@ def _wait_for_nodes(launcher: subprocess.Popen[bytes], timeout: float = 30.0) ->
         pids = _node_pids(launcher.pid)
     assert len(pids) == 3, pids
     return pids
+
+
+def _wait_for_logs(log_dir: Path, timeout: float = 30.0) -> None:
+    """Until every node has started and logged its first line (or ``timeout`` seconds)."""
+    logs = [log_dir / f"{n}.log" for n in graph.NODE_NAMES]
+    deadline = time.monotonic() + timeout
+    while not all(f.exists() and f.stat().st_size for f in logs):
+        if time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
 
 
 def _end(launcher: subprocess.Popen[bytes], pids: list[int]) -> None:

@@ -159,7 +159,8 @@ def test_graph_hands_ros_args_to_every_node(probe: Probe, tmp_path: Path, mode: 
         assert value(probe.get_parameter(f"{ns}/pose_estimator", "diameter_mm")) == 10.0
         assert value(probe.get_parameter(f"{ns}/displacement_matcher", "data_dir")) == str(data)
     finally:
-        graph.stop_processes([launcher])
+        # More time than the launcher gives its nodes (5 s), so that a slow node shows in err.
+        graph.stop_processes([launcher], timeout=15.0)
         _, err = launcher.communicate(timeout=10.0)
     assert launcher.returncode in (0, -2, 130), err  # stopped by the SIGINT, not failed
 

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from rosutil import REPO, Probe, Recorder, armourcam, start_armourcam
+from rosutil import REPO, Probe, Recorder, armourcam, ignore_sigint, start_armourcam
 
 from armourcam import bagio, graph
 from armourcam.commands.record import TOPIC_TYPES
@@ -252,6 +252,26 @@ def test_latched_history_is_logged_when_it_was_published(
     for (_, _, t_ns), (before, after) in zip(got, published, strict=True):
         assert before <= t_ns <= after
     assert got[1][2] < t_start
+
+
+def test_a_recorder_started_with_sigint_ignored_stops_cleanly_on_sigint(
+    probe: Probe, tmp_path: Path, recorder: Callable[..., Recorder]
+) -> None:
+    """Started with SIGINT ignored (``armourcam record &`` from a script), the recorder still
+    stops on SIGINT, as rclpy's handler takes it: it used to end with a traceback (its context
+    shut down under it, no KeyboardInterrupt); now with status 0, its counts and a whole bag."""
+    from std_msgs.msg import String
+
+    run_id = probe.node.create_publisher(String, "/hall/run_id", event_qos())
+    run_id.publish(String(data="wave-007"))
+    rec = recorder(tmp_path / "rec", "hall/run_id", preexec_fn=ignore_sigint)
+    assert rec.wait_ready(), rec.lines
+    assert probe.spin_until(lambda: run_id.get_subscription_count() >= 1, 10.0)
+    probe.spin_for(1.0)
+    counts = rec.stop()  # SIGINT; asserts status 0
+    assert "/hall/run_id: 1" in counts, (counts, rec.lines)
+    with bagio.open_bag(tmp_path / "rec") as b:
+        assert [m.message.data for m in b.messages()] == ["wave-007"]
 
 
 def test_default_topics_include_the_events_in_the_recorders_namespace(

@@ -78,15 +78,20 @@ def run(args: argparse.Namespace) -> int:
         return graph.run_one_process(
             params, multithreaded=not args.single_threaded, ros_args=args.ros_args
         )
-    procs = graph.launch_processes(params, log_dir=args.log_dir, ros_args=args.ros_args)
     stopping = False
 
     def _stop(_sig: int, _frame: Any) -> None:
         nonlocal stopping
         stopping = True
 
+    # Python leaves SIGINT ignored when it started ignored, as it does for a command that a
+    # non-interactive shell put in the background (`armourcam graph &` in a rig's script), and
+    # the nodes would inherit that: Ctrl-C and `kill -INT` must stop the graph all the same.
+    # Installed before the nodes start, so that they start with the default dispositions.
+    signal.signal(signal.SIGINT, _stop)
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGHUP, _stop)  # a closed terminal stops the graph like Ctrl-C
+    procs = graph.launch_processes(params, log_dir=args.log_dir, ros_args=args.ros_args)
 
     def _respawn(name: str) -> subprocess.Popen[bytes]:
         new = graph.launch_processes(
@@ -102,10 +107,15 @@ def run(args: argparse.Namespace) -> int:
             respawn=_respawn if args.respawn else None,
             respawn_delay_s=delay,
         )
-    except KeyboardInterrupt:
-        pass
     finally:
-        graph.stop_processes(procs.values())  # kept current: respawned processes included
+        # ``procs`` is kept current: respawned processes included.
+        names = {proc.pid: name for name, proc in procs.items()}
+        ended = graph.stop_processes(procs.values())
+        for pid, code in ended.items():
+            # Status 0, or the SIGINT itself for a node still starting up: a clean stop. Any
+            # other end (a crash, the SIGKILL of a node that did not stop) is named.
+            if code not in (0, -signal.SIGINT, None):
+                graph.log_launcher(f"{names[pid]} stopped with {graph.describe_exit(code)}")
     return status
 
 
