@@ -1208,9 +1208,7 @@ def replay_bag(
             if rate is not None and not as_fast_as_consumed:
                 t0_bag = t_ns if t0_bag is None else t0_bag
                 due = t0_wall + (t_ns - t0_bag) / 1e9 / rate
-                delay = due - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
+                _sleep_while_ok(due - time.monotonic())
             msg = bagio.copy_message(obj, message_class(msgtype))
             if restamp and hasattr(msg, "header"):
                 # One new stamp per recorded stamp: an image and its camera info stay paired
@@ -1251,8 +1249,7 @@ def replay_bag(
                         )
             if progress is not None:
                 progress(i + 1, total)
-        if settle_s > 0:
-            time.sleep(settle_s)
+        _sleep_while_ok(settle_s)
         unacked = replayer.drain(drain_s) if rclpy.ok() else []
         if unacked:
             node.get_logger().warning(
@@ -1267,6 +1264,14 @@ def replay_bag(
         rclpy.try_shutdown()
         spinner.join(2.0)
     return ReplayStats(published, frames, confirmed, time.monotonic() - t_start)
+
+
+def _sleep_while_ok(seconds: float) -> None:
+    """Sleep ``seconds`` (nothing if not positive), ending early once the context is shut
+    down: a signal does not interrupt the sleep when it raises no KeyboardInterrupt."""
+    end = time.monotonic() + seconds
+    while rclpy.ok() and (left := end - time.monotonic()) > 0:
+        time.sleep(min(left, 0.1))
 
 
 def _bag_messages(bag: Path) -> Iterator[tuple[str, str, int, Any]]:

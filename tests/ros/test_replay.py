@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from rosutil import Nodes, Probe, armourcam
+from rosutil import REPO, Nodes, Probe, armourcam, ignore_sigint, start_armourcam
 
-from armourcam import bagio, records
+from armourcam import bagio, graph, records
 from armourcam.graph import Replayer, latched_qos, record_qos, stream_qos
 from pose_estimator.camera import CameraModel
 
@@ -281,3 +282,38 @@ def test_replay_drain_waits_for_every_subscriber_to_acknowledge(probe: Probe) ->
     finally:
         os.killpg(child.pid, signal.SIGKILL)
         child.wait(5.0)
+
+
+def test_a_replay_started_with_sigint_ignored_stops_at_once_on_sigint() -> None:
+    """Started with SIGINT ignored (``armourcam replay BAG &`` from a script), a slow replay
+    stops on SIGINT, which rclpy's handler takes, within a second and with status 0; it used to
+    publish on into a shut-down context and end with a traceback, and sleep out the time to
+    its next message first."""
+    import signal
+    import subprocess
+    import time
+
+    proc = start_armourcam(
+        "replay",
+        str(REPO / "bags" / "session_small"),
+        "--rate",
+        "0.01",  # the bag's frames 0.5 s apart: 50 s between them
+        "--wait-subscribers",
+        "0",
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=ignore_sigint,
+    )
+    try:
+        time.sleep(8.0)  # started, publishing, waiting for its next message
+        assert proc.poll() is None, proc.communicate()
+        t0 = time.monotonic()
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=15.0)
+        took = time.monotonic() - t0
+    finally:
+        graph.stop_processes([proc])
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err, err
+    assert took < 10.0, took  # not the rest of the 50 s to the next frame
