@@ -83,7 +83,8 @@ class Nodes:
         return proc
 
     def stop(self, label: str) -> int | None:
-        """Stop one node (SIGINT to its group, SIGKILL after 5 s); returns its exit status."""
+        """Stop one node (SIGINT to its group, SIGKILL after 5 s); returns its exit status.
+        Callers asserting 0 show :meth:`log`: a crash leaves its Python stack there."""
         proc = self.procs.pop(label)
         graph.stop_processes([proc])
         return proc.returncode

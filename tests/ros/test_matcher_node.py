@@ -59,7 +59,7 @@ def test_late_subscriber_gets_latched_report_and_markers_and_state_survives_rest
     assert late.baselines[-1].width == len(truth0)
 
     # Restart the matcher: it resumes from data_dir (baseline + run 1) and republishes.
-    assert nodes.stop("displacement_matcher") == 0
+    assert nodes.stop("displacement_matcher") == 0, nodes.log("displacement_matcher")
     nodes.start("displacement_matcher", params=matcher_params(data), label="matcher2")
     late2 = Latched(probe)
     assert probe.spin_until(lambda: late2.reports and late2.baselines, 20.0), nodes.log("matcher2")
@@ -113,7 +113,7 @@ def test_a_stop_published_while_the_matcher_is_down_ends_the_resumed_run(
     assert probe.spin_until(
         lambda: state.exists() and json.loads(state.read_text())["run_id"] == "wave-K", 20.0
     ), nodes.log("displacement_matcher")
-    assert nodes.stop("displacement_matcher") == 0
+    assert nodes.stop("displacement_matcher") == 0, nodes.log("displacement_matcher")
     hall.active.publish(Bool(data=False))  # while the matcher is down
     probe.spin_for(0.5)
     nodes.start("displacement_matcher", params=matcher_params(data), label="matcher2")

@@ -37,7 +37,7 @@ def test_a_restarted_matcher_republishes_its_outputs_in_the_frames_frame(
     assert probe.spin_until(lambda: list(data.glob("runs/*.json")), 20.0), nodes.log(
         "displacement_matcher"
     )
-    assert nodes.stop("displacement_matcher") == 0
+    assert nodes.stop("displacement_matcher") == 0, nodes.log("displacement_matcher")
     # No frame reaches the restarted matcher: what it knows of the frame is what it kept.
     probe.node.destroy_publisher(hall.poses)
     assert json.loads((data / "session.json").read_text())["frame_id"] == FRAME_ID
@@ -110,7 +110,7 @@ def test_a_restarted_pose_estimator_does_not_make_the_matcher_take_frames_twice(
     probe.spin_for(0.3)
     assert len(poses_out) == 4
 
-    assert nodes.stop("pose_estimator") == 0
+    assert nodes.stop("pose_estimator") == 0, nodes.log("pose_estimator")
     probe.spin_for(0.5)
     pose_status.clear()
     nodes.start("pose_estimator", params=pose_params, label="pose2")
