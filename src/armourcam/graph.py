@@ -536,6 +536,18 @@ def use_dds_profile() -> None:
 _STATUS_BAD_PARAMETERS = 2
 
 
+@contextlib.contextmanager
+def _shutdown_is_a_stop() -> Iterator[None]:
+    """Take an error raised once the context has been shut down (RCLError, an invalid
+    handle...: a call made as a signal stopped the process, without a KeyboardInterrupt) as the
+    clean stop it is; any other error propagates."""
+    try:
+        yield
+    except Exception:
+        if rclpy.ok():
+            raise
+
+
 def _run_nodes(
     argv: Sequence[str],
     factories: Sequence[Callable[[], Node]],
@@ -567,21 +579,17 @@ def _run_nodes(
     nodes: list[Node] = []
     status = 0
     try:
-        for factory in factories:
-            nodes.append(factory())
-            executor.add_node(nodes[-1])
-        if rclpy.ok():
-            executor.spin()
+        with _shutdown_is_a_stop():  # e.g. under a node being built or a callback publishing
+            for factory in factories:
+                nodes.append(factory())
+                executor.add_node(nodes[-1])
+            if rclpy.ok():
+                executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except GraphError as err:
         print(f"error: {err}", file=sys.stderr)
         status = _STATUS_BAD_PARAMETERS
-    except Exception:
-        # The signal shut the context down under a node being built or a callback publishing
-        # (RCLError, an invalid handle...): that is a clean stop; anything else is not.
-        if rclpy.ok():
-            raise
     finally:
         executor.shutdown()
         for n in nodes:
@@ -1167,97 +1175,95 @@ def replay_bag(
     frames = confirmed = 0
     t_start = time.monotonic()
     try:
-        # Messages are streamed from the bag (a 6 MP session does not fit in memory); the
-        # topics come from its metadata.
-        if messages is not None:
-            listed = list(_plan(messages(), remap))
-            topics = {t: mt for t, mt, _, _ in listed}
-            latched: set[str] = set()  # no metadata to tell
-            total = len(listed)
-            items: Iterator[tuple[str, str, int, Any]] = iter(listed)
-        else:
-            with bagio.open_bag(bag) as b:
-                if b.message_count == 0:
-                    raise GraphError(f"{bag}: the bag holds no messages")
-                infos = [i for i in b.topics.values() if replay_name(i.topic, remap)]
-            topics = {replay_name(i.topic, remap): i.msgtype for i in infos}
-            # Recorded with a TRANSIENT_LOCAL offered QoS: republished latched (Replayer.qos).
-            latched = {replay_name(i.topic, remap) for i in infos if i.latched}
-            total = sum(i.count for i in infos)
-            items = _plan(_bag_messages(bag), remap)
-        # Create every publisher first and wait for the graph to match them, so that the first
-        # frames are not published into the void.
-        for topic, msgtype in topics.items():
-            replayer.publisher(topic, msgtype, latched=topic in latched)
-        waited = [t for t, mt in topics.items() if not mt.startswith("std_msgs/")]
-        missing = replayer.wait_for_subscribers(sorted(set(waited)), wait_subscribers)
-        missing += replayer.wait_for_graph(list(wait_for), wait_subscribers)
-        if missing:
-            node.get_logger().warning(f"no subscriber yet on {missing}; publishing anyway")
-        # A publisher sees the match before the subscriber has matched it back; samples sent in
-        # between are not delivered to a volatile reader. Give discovery a moment to finish.
-        time.sleep(match_grace_s)
-        last_ns = [0]
-        restamped: dict[tuple[int, int], Any] = {}  # recorded stamp -> new (the latest few)
-        last_info: list[tuple[str, str, Any]] = []
-        t0_bag: int | None = None
-        t0_wall = time.monotonic()
-        for i, (topic, msgtype, t_ns, obj) in enumerate(items):
-            if not rclpy.ok():  # SIGINT or SIGTERM without a KeyboardInterrupt (see record)
-                break
-            if rate is not None and not as_fast_as_consumed:
-                t0_bag = t_ns if t0_bag is None else t0_bag
-                due = t0_wall + (t_ns - t0_bag) / 1e9 / rate
-                _sleep_while_ok(due - time.monotonic())
-            msg = bagio.copy_message(obj, message_class(msgtype))
-            if restamp and hasattr(msg, "header"):
-                # One new stamp per recorded stamp: an image and its camera info stay paired
-                # for exact-time synchronisers (image_proc, viewers).
-                old = (msg.header.stamp.sec, msg.header.stamp.nanosec)
-                new = restamped.get(old)
-                if new is None:
-                    new = _stamp_now(node, last_ns)
-                    restamped[old] = new
-                    while len(restamped) > 16:
-                        del restamped[next(iter(restamped))]
-                msg.header.stamp = new
-            pub = replayer.publisher(topic, msgtype)
-            pub.publish(msg)
-            published[pub.topic_name] = published.get(pub.topic_name, 0) + 1  # resolved name
-            if msgtype == "sensor_msgs/msg/CameraInfo":
-                last_info[:] = [(topic, msgtype, msg)]
-            if msgtype.startswith("std_msgs/") and as_fast_as_consumed:
-                # Hall events travel on their own topics: without recorded gaps, give each a
-                # head start so the matcher orders it against the frames around it.
-                time.sleep(hall_gap_s)
-            if msgtype in IMAGE_TYPES:
-                frames += 1
-                if as_fast_as_consumed:
-                    if replayer.wait_confirmed(msg.header.stamp):
-                        confirmed += 1
-                        # The pose estimator holds frames until it has a camera; camera info
-                        # sent while discovery was still settling may not have reached it.
-                        if not replayer.wait_downstream(msg.header.stamp, 3.0) and last_info:
-                            info_topic, info_type, info = last_info[-1]
-                            info.header.stamp = _stamp_now(node, last_ns)
-                            replayer.publisher(info_topic, info_type).publish(info)
-                            replayer.wait_downstream(msg.header.stamp, replayer.confirm_timeout)
-                    else:
-                        node.get_logger().error(
-                            f"no output on {confirm_topic} for frame {frames} within "
-                            f"{replayer.confirm_timeout:.0f} s"
-                        )
-            if progress is not None:
-                progress(i + 1, total)
-        _sleep_while_ok(settle_s)
-        unacked = replayer.drain(drain_s) if rclpy.ok() else []
-        if unacked:
-            node.get_logger().warning(
-                f"not acknowledged by every subscriber within {drain_s:.0f} s: {unacked}"
-            )
-    except Exception:
-        if rclpy.ok():  # else a signal shut the context down under a call: a clean stop
-            raise
+        with _shutdown_is_a_stop():
+            # Messages are streamed from the bag (a 6 MP session does not fit in memory); the
+            # topics come from its metadata.
+            if messages is not None:
+                listed = list(_plan(messages(), remap))
+                topics = {t: mt for t, mt, _, _ in listed}
+                latched: set[str] = set()  # no metadata to tell
+                total = len(listed)
+                items: Iterator[tuple[str, str, int, Any]] = iter(listed)
+            else:
+                with bagio.open_bag(bag) as b:
+                    if b.message_count == 0:
+                        raise GraphError(f"{bag}: the bag holds no messages")
+                    infos = [i for i in b.topics.values() if replay_name(i.topic, remap)]
+                topics = {replay_name(i.topic, remap): i.msgtype for i in infos}
+                # Recorded with a TRANSIENT_LOCAL offered QoS: republished latched (Replayer.qos).
+                latched = {replay_name(i.topic, remap) for i in infos if i.latched}
+                total = sum(i.count for i in infos)
+                items = _plan(_bag_messages(bag), remap)
+            # Create every publisher first and wait for the graph to match them, so that the first
+            # frames are not published into the void.
+            for topic, msgtype in topics.items():
+                replayer.publisher(topic, msgtype, latched=topic in latched)
+            waited = [t for t, mt in topics.items() if not mt.startswith("std_msgs/")]
+            missing = replayer.wait_for_subscribers(sorted(set(waited)), wait_subscribers)
+            missing += replayer.wait_for_graph(list(wait_for), wait_subscribers)
+            if missing:
+                node.get_logger().warning(f"no subscriber yet on {missing}; publishing anyway")
+            # A publisher sees the match before the subscriber has matched it back; samples sent in
+            # between are not delivered to a volatile reader. Give discovery a moment to finish.
+            time.sleep(match_grace_s)
+            last_ns = [0]
+            restamped: dict[tuple[int, int], Any] = {}  # recorded stamp -> new (the latest few)
+            last_info: list[tuple[str, str, Any]] = []
+            t0_bag: int | None = None
+            t0_wall = time.monotonic()
+            for i, (topic, msgtype, t_ns, obj) in enumerate(items):
+                if not rclpy.ok():  # SIGINT or SIGTERM without a KeyboardInterrupt (see record)
+                    break
+                if rate is not None and not as_fast_as_consumed:
+                    t0_bag = t_ns if t0_bag is None else t0_bag
+                    due = t0_wall + (t_ns - t0_bag) / 1e9 / rate
+                    _sleep_while_ok(due - time.monotonic())
+                msg = bagio.copy_message(obj, message_class(msgtype))
+                if restamp and hasattr(msg, "header"):
+                    # One new stamp per recorded stamp: an image and its camera info stay paired
+                    # for exact-time synchronisers (image_proc, viewers).
+                    old = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+                    new = restamped.get(old)
+                    if new is None:
+                        new = _stamp_now(node, last_ns)
+                        restamped[old] = new
+                        while len(restamped) > 16:
+                            del restamped[next(iter(restamped))]
+                    msg.header.stamp = new
+                pub = replayer.publisher(topic, msgtype)
+                pub.publish(msg)
+                published[pub.topic_name] = published.get(pub.topic_name, 0) + 1  # resolved name
+                if msgtype == "sensor_msgs/msg/CameraInfo":
+                    last_info[:] = [(topic, msgtype, msg)]
+                if msgtype.startswith("std_msgs/") and as_fast_as_consumed:
+                    # Hall events travel on their own topics: without recorded gaps, give each a
+                    # head start so the matcher orders it against the frames around it.
+                    time.sleep(hall_gap_s)
+                if msgtype in IMAGE_TYPES:
+                    frames += 1
+                    if as_fast_as_consumed:
+                        if replayer.wait_confirmed(msg.header.stamp):
+                            confirmed += 1
+                            # The pose estimator holds frames until it has a camera; camera info
+                            # sent while discovery was still settling may not have reached it.
+                            if not replayer.wait_downstream(msg.header.stamp, 3.0) and last_info:
+                                info_topic, info_type, info = last_info[-1]
+                                info.header.stamp = _stamp_now(node, last_ns)
+                                replayer.publisher(info_topic, info_type).publish(info)
+                                replayer.wait_downstream(msg.header.stamp, replayer.confirm_timeout)
+                        else:
+                            node.get_logger().error(
+                                f"no output on {confirm_topic} for frame {frames} within "
+                                f"{replayer.confirm_timeout:.0f} s"
+                            )
+                if progress is not None:
+                    progress(i + 1, total)
+            _sleep_while_ok(settle_s)
+            unacked = replayer.drain(drain_s) if rclpy.ok() else []
+            if unacked:
+                node.get_logger().warning(
+                    f"not acknowledged by every subscriber within {drain_s:.0f} s: {unacked}"
+                )
     finally:
         executor.shutdown()
         node.destroy_node()
@@ -1425,7 +1431,7 @@ def record_topics(
     announced = False
     written: dict[str, int] = {}  # full name -> messages written (the writer's own count)
     try:
-        with bagio.BagWriter(out) as writer:
+        with _shutdown_is_a_stop(), bagio.BagWriter(out) as writer:
             written = writer.counts
             recorder = _Recorder(node, writer, names, types or {})
             # rclpy's handler shuts the context down on SIGINT or SIGTERM, also when the
@@ -1445,9 +1451,6 @@ def record_topics(
                     break
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except Exception:
-        if rclpy.ok():  # else a signal shut the context down under a call: a clean stop
-            raise
     finally:
         executor.shutdown()
         node.destroy_node()
