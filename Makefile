@@ -10,8 +10,9 @@ STAMP   := $(VENV)/.installed
 
 setup: $(STAMP)
 
-# Reinstall only when the project's declared dependencies change; the package itself is editable.
-$(STAMP): pyproject.toml
+# Reinstall only when the project's declared dependencies or its one compiled kernel change; the
+# package itself is editable (the kernel is built in place, beside its module).
+$(STAMP): pyproject.toml setup.py src/fiducial_detector/_profile_kernel.c
 	test -x $(VPY) || $(PY) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
 	$(VPY) -m pip install -q -e ".[dev]"
@@ -21,8 +22,8 @@ demo: $(STAMP)
 	$(VENV)/bin/armourcam demo --out out
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check src tests benchmarks
-	$(VENV)/bin/ruff format --check src tests benchmarks
+	$(VENV)/bin/ruff check src tests benchmarks setup.py
+	$(VENV)/bin/ruff format --check src tests benchmarks setup.py
 
 typecheck: $(STAMP)
 	$(VENV)/bin/mypy
@@ -39,4 +40,4 @@ bags: $(STAMP)
 	$(VENV)/bin/armourcam make-bags --out bags
 
 clean:
-	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache build src/fiducial_detector/_profile_kernel*.so

@@ -54,7 +54,14 @@ from .design import DESIGNS, DOT, PAPER_RADIUS, RING, Circle, FiducialDesign
 from .edge_fit import EdgeFits, refine_annuli, refine_ellipses
 from .ellipse import estimate_noise, fit_ellipses
 from .errors import DetectorError
-from .profile_fit import LINE_SPACING_PX, MAX_WINDOW_PX, line_counts, refine_by_profiles_f32
+from .profile_fit import (
+    LINE_SPACING_PX,
+    MAX_WINDOW_PX,
+    SampledImage,
+    line_counts,
+    refine_by_profiles_sampled,
+    sampled_image,
+)
 from .threshold import DEFAULT_T, block_means, bradley_threshold, default_window
 from .types import Ellipse, FiducialDetection
 
@@ -214,23 +221,24 @@ class _Candidates:
     drift: NDArray[np.float64]  # (N, 2)
 
 
-class _Float32Frame:
-    """A frame's float32 copy (what the profile fits sample), made on first use and then shared
-    by every stage and design of the frame: a 6 Mpx copy costs 1-3 ms (more when its memory is
-    fresh), and the ``dot`` design's arcs, ``design="any"``'s second design and the circles
-    each made their own."""
+class _SampledFrame:
+    """A frame as the profile fits sample it (:func:`.profile_fit.sampled_image`: 8 and 16-bit
+    and float32 frames as they are, others as one float32 copy), made on first use and then
+    shared by every stage and design of the frame: a 6 Mpx copy costs 1-3 ms (more when its
+    memory is fresh), and the ``dot`` design's arcs, ``design="any"``'s second design and the
+    circles each made their own."""
 
-    __slots__ = ("_copy", "_grey")
+    __slots__ = ("_grey", "_sampled")
 
     def __init__(self, grey: NDArray[np.generic]) -> None:
         self._grey = grey
-        self._copy: NDArray[np.float32] | None = None
+        self._sampled: SampledImage | None = None
 
-    def get(self) -> NDArray[np.float32]:
-        """The float32 copy of the whole frame."""
-        if self._copy is None:
-            self._copy = np.asarray(self._grey, dtype=np.float32)
-        return self._copy
+    def get(self) -> SampledImage:
+        """The whole frame, as the profile fits sample it."""
+        if self._sampled is None:
+            self._sampled = sampled_image(np.asarray(self._grey))
+        return self._sampled
 
 
 def detect(
@@ -381,14 +389,14 @@ def detect_grey(
     found: list[FiducialDetection] = []
     designs = (RING, DOT) if config.design == "any" else (DESIGNS[config.design],)
     noise: float | None = None  # estimated once, when the first candidates need it
-    frame32 = _Float32Frame(grey)
+    sampled = _SampledFrame(grey)
     for design in designs:
         cands = _candidates(bounds, design, config.min_diameter_px, max_d)
         cands = _outside(cands, found)
         if noise is None and len(cands.centre):
             noise = _noise_std(grey)
         found += _finish(
-            grey, full_scale, cands, config.reader, config.subpixel, noise, frame32=frame32
+            grey, full_scale, cands, config.reader, config.subpixel, noise, sampled=sampled
         )
     found = _deduplicate(found)
     found.sort(key=lambda d: (d.center_px[1], d.center_px[0]))
@@ -473,11 +481,11 @@ def _finish(
     subpixel: SubpixelMethod = "profile",
     noise: float | None = None,
     *,
-    frame32: _Float32Frame | None = None,
+    sampled: _SampledFrame | None = None,
 ) -> list[FiducialDetection]:
     """Read codes, fit every circle of the accepted candidates, read again, build results
-    (``noise``: the image's noise sd, estimated here when not given; ``frame32``: the frame's
-    shared float32 copy, made here when not given)."""
+    (``noise``: the image's noise sd, estimated here when not given; ``sampled``: the frame as
+    the profile fits sample it, shared, made here when not given)."""
     if len(cands.centre) == 0:
         return []
     design = cands.design
@@ -548,9 +556,9 @@ def _finish(
     idx = np.nonzero(first.accepted)[0]
     if idx.size == 0:
         return []
-    if frame32 is None:
-        frame32 = _Float32Frame(grey)
-    fitted_all = _fit_circles(grey, noise, cands, idx, subpixel, frame32)
+    if sampled is None:
+        sampled = _SampledFrame(grey)
+    fitted_all = _fit_circles(grey, noise, cands, idx, subpixel, sampled)
     keep: list[int] = []
     fitted: list[tuple[Ellipse, ...]] = []
     for i, group in zip(idx.tolist(), fitted_all, strict=True):
@@ -595,7 +603,7 @@ def _finish(
         confirmed = {int(j) for j in tj[ok]}
     checked = {j for j, _, _ in thin}
     final = [(j, reading, k) for j, reading, k in chosen if j not in checked or j in confirmed]
-    arcs_src = frame32.get() if design.arcs and final else None
+    arcs_src = sampled.get() if design.arcs and final else None
     groups = fit_arcs(grey, [fitted[j] for j, _, _ in final], design, noise, src=arcs_src)
     return _detections(design, groups, [(reading, k) for _, reading, k in final])
 
@@ -627,12 +635,12 @@ def _fit_circles(
     cands: _Candidates,
     idx: NDArray[np.intp],
     subpixel: SubpixelMethod,
-    frame32: _Float32Frame,
+    sampled: _SampledFrame,
 ) -> list[tuple[Ellipse, ...]]:
-    """:func:`fit_design_circles` for candidates ``idx`` (``frame32``: the frame's float32 copy,
-    taken only by the profile fits)."""
+    """:func:`fit_design_circles` for candidates ``idx`` (``sampled``: the frame as the profile
+    fits sample it, taken only by them)."""
     seeds = np.column_stack([cands.centre[idx], cands.axes[idx], cands.angle[idx]])
-    src = frame32.get() if subpixel == "profile" else None
+    src = sampled.get() if subpixel == "profile" else None
     return fit_design_circles(grey, seeds, cands.design, noise, method=subpixel, src=src)
 
 
@@ -643,7 +651,7 @@ def fit_design_circles(
     noise_std: float,
     *,
     method: SubpixelMethod = "profile",
-    src: NDArray[np.float32] | None = None,
+    src: SampledImage | None = None,
 ) -> list[tuple[Ellipse, ...]]:
     """Sub-pixel ellipses of every printed circle of fiducials of one design (step 3, then better).
 
@@ -661,9 +669,9 @@ def fit_design_circles(
         ``profile``: every circle from edge profiles along its normals (:mod:`.profile_fit`),
         the pose circle first, the others seeded from it scaled and given its measured blur.
         ``ml``: as below.
-    src : (H, W) ndarray of float32, optional
-        ``grey`` as float32, where the caller has it already (the profile fits sample it);
-        otherwise converted here.
+    src : (H, W) ndarray, optional
+        ``grey`` as the profile fits sample it (:func:`.profile_fit.sampled_image`), where the
+        caller has it already; otherwise prepared here.
 
     Returns
     -------
@@ -689,7 +697,7 @@ def fit_design_circles(
     if method == "ml" or len(seeds) == 0:
         return _fit_ml(grey, seeds, design, noise_std)
     if src is None:
-        src = np.asarray(grey, dtype=np.float32)
+        src = sampled_image(np.asarray(grey))
     first = _profile_circle(src, design, 0, seeds, None, noise_std)
     # Where most of the pose circle's lines found no clean edge (a small oblique dot whose
     # windows the code track cuts short), the profiles say too little: the model fit instead.
@@ -764,7 +772,7 @@ def fit_arcs(
     design: FiducialDesign,
     noise_std: float | None = None,
     *,
-    src: NDArray[np.float32] | None = None,
+    src: SampledImage | None = None,
 ) -> list[tuple[Ellipse, ...]]:
     """Each fiducial's fitted circles followed by its design's coding-track arcs (the ``dot``
     design's track's outer edge), where they could be fitted.
@@ -772,7 +780,7 @@ def fit_arcs(
     The ``dot`` design's only full circle, its dot, is small (0.3 of the outer radius) and
     carries the pose badly; the track's outer edge, 3.3 times larger, is printed only where a
     sector is black. It is fitted from edge profiles on those parts only (the ``partial`` mode
-    of :func:`.profile_fit.refine_by_profiles_f32`: lines across white sectors or near a
+    of :func:`.profile_fit.refine_by_profiles_sampled`: lines across white sectors or near a
     sector's end are left out), seeded by the fitted pose circle scaled and tied to that seed
     along what the arcs leave unmeasured, with the covariance of what they measure. The pose
     estimator takes it as one more concentric circle of known radius.
@@ -787,9 +795,10 @@ def fit_arcs(
     noise_std : float, optional
         Image noise sd in ``grey``'s units: the arcs' covariances are propagated from it
         (otherwise from their residuals).
-    src : (H, W) ndarray of float32, optional
-        ``grey`` as float32, where the caller has it already; otherwise the region the arcs'
-        windows can reach is converted here.
+    src : (H, W) ndarray, optional
+        ``grey`` as the profile fits sample it (:func:`.profile_fit.sampled_image`), where the
+        caller has it already; otherwise the region the arcs' windows can reach is prepared
+        here.
 
     Returns
     -------
@@ -800,15 +809,18 @@ def fit_arcs(
     if not design.arcs or not groups:
         return groups
     base = np.array([_parameters(g[0]) for g in groups])
-    # Only the region the arcs' windows can reach is sampled (its float32 copy, or a view of
-    # the frame's; cut there either way, so that borders replicate and coordinates round alike).
-    reach = base[:, 2] * PAPER_RADIUS / r0 + MAX_WINDOW_PX + 2.0
-    h, w = grey.shape[:2]
-    u0 = int(np.clip(np.floor(np.min(base[:, 0] - reach)), 0, w))
-    v0 = int(np.clip(np.floor(np.min(base[:, 1] - reach)), 0, h))
-    u1 = int(np.clip(np.ceil(np.max(base[:, 0] + reach)) + 1, u0, w))
-    v1 = int(np.clip(np.ceil(np.max(base[:, 1] + reach)) + 1, v0, h))
-    region = np.asarray(grey[v0:v1, u0:u1], dtype=np.float32) if src is None else src[v0:v1, u0:u1]
+    if src is None:
+        # Only the region the arcs' windows can reach is prepared (the kernel samples positions
+        # relative to each fit's centre, so the cut changes no sample).
+        reach = base[:, 2] * PAPER_RADIUS / r0 + MAX_WINDOW_PX + 2.0
+        h, w = grey.shape[:2]
+        u0 = int(np.clip(np.floor(np.min(base[:, 0] - reach)), 0, w))
+        v0 = int(np.clip(np.floor(np.min(base[:, 1] - reach)), 0, h))
+        u1 = int(np.clip(np.ceil(np.max(base[:, 0] + reach)) + 1, u0, w))
+        v1 = int(np.clip(np.ceil(np.max(base[:, 1] + reach)) + 1, v0, h))
+        region = sampled_image(np.asarray(grey[v0:v1, u0:u1]))
+    else:
+        region, u0, v0 = src, 0, 0
     base[:, 0] -= u0
     base[:, 1] -= v0
     out = list(groups)
@@ -816,7 +828,7 @@ def fit_arcs(
         seeds = base.copy()
         seeds[:, 2:4] *= arc.radius / r0
         r = arc.radius
-        res = refine_by_profiles_f32(
+        res = refine_by_profiles_sampled(
             region,
             seeds,
             np.full(len(seeds), 1.0 if arc.dark_inside else -1.0),
@@ -918,7 +930,7 @@ def _fit_small_annulus(
 
 def _fit_profiles(
     grey: NDArray[np.generic],
-    src: NDArray[np.float32],
+    src: SampledImage,
     seeds: NDArray[Any],
     design: FiducialDesign,
     noise: float,
@@ -964,7 +976,7 @@ def _plausible_rows(fits: NDArray[Any], seeds: NDArray[Any]) -> NDArray[np.bool_
 
 
 def _profile_circle(
-    src: NDArray[np.float32],
+    src: SampledImage,
     design: FiducialDesign,
     k: int,
     seeds: NDArray[Any],
@@ -979,7 +991,7 @@ def _profile_circle(
     # Circles seeded from the fitted pose circle (blur known) are within a tenth of a pixel
     # (perspective): one pass, whose first-order window corrections hold that far.
     passes = 4 if blur is None else 1
-    return refine_by_profiles_f32(
+    return refine_by_profiles_sampled(
         src,
         seeds,
         polarity,

@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from . import _profile_kernel
 from .edge_fit import (
     EdgeFits,
     checked_image,
@@ -136,6 +137,10 @@ _CONVERGED_PX = 0.05
 _FOLD = 4096
 #: Fits per padded block.
 _BLOCK = 512
+#: Pixel types the kernel samples as they are (its ``kind`` codes).
+_KINDS = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1, np.dtype(np.float32): 2}
+#: An image the kernel samples (:func:`sampled_image`).
+SampledImage = NDArray[np.uint8] | NDArray[np.uint16] | NDArray[np.float32]
 _INV_SQRT_2PI = float(1.0 / np.sqrt(2.0 * np.pi))
 
 
@@ -221,8 +226,8 @@ def refine_by_profiles(
         raise DetectorError(f"noise_std must be positive and finite, got {noise_std!r}")
     rho = checked_rho_range(rho_range)
     polarity = polarity_signs(dark_inside, seeds.shape[0])
-    return refine_by_profiles_f32(
-        np.asarray(img, dtype=np.float32),
+    return refine_by_profiles_sampled(
+        sampled_image(img),
         seeds,
         polarity,
         rho,
@@ -232,8 +237,16 @@ def refine_by_profiles(
     )
 
 
-def refine_by_profiles_f32(
-    src: NDArray[np.float32],
+def sampled_image(image: NDArray[Any]) -> SampledImage:
+    """``image`` as the kernel samples it: C-contiguous uint8, uint16 or float32 pixels, the
+    image itself where it is one (no copy of a frame), else one float32 copy."""
+    if image.dtype in _KINDS:
+        return np.ascontiguousarray(image)
+    return np.ascontiguousarray(image, dtype=np.float32)
+
+
+def refine_by_profiles_sampled(
+    src: SampledImage,
     seeds: NDArray[np.float64],
     polarity: NDArray[np.float64],
     rho_range: tuple[float, float],
@@ -244,8 +257,8 @@ def refine_by_profiles_f32(
     noise_std: float | None = None,
     spacing: float = LINE_SPACING_PX,
 ) -> EdgeFits:
-    """:func:`refine_by_profiles` on a float32 image already converted (one conversion serves
-    every circle of a frame); ``polarity`` is +1 where the inside is dark. ``spread``: the
+    """:func:`refine_by_profiles` on an image :func:`sampled_image` has prepared (once for every
+    circle of a frame); ``polarity`` is +1 where the inside is dark. ``spread``: the
     image blur of each fit where known (another edge of the same fiducial), used until the
     fit's own lines measure it. ``partial``: the edge is printed only along parts of the
     ellipse (a coding track's arcs): only lines whose step is near the largest ones' (within
@@ -288,7 +301,7 @@ def refine_by_profiles_f32(
 
 
 def _fit_block(
-    src: NDArray[np.float32],
+    src: SampledImage,
     seeds: NDArray[np.float64],
     pol: NDArray[np.float64],
     count: NDArray[np.intp],
@@ -372,7 +385,7 @@ def _fit_block(
 
 
 def _pass(
-    src: NDArray[np.float32],
+    src: SampledImage,
     cur: NDArray[np.float64],
     blur: NDArray[np.float64],
     pol: NDArray[np.float64],
@@ -388,13 +401,12 @@ def _pass(
     """One sampling pass: lines on the current ellipses, edge positions, a least-squares step.
     Returns the stepped ellipses; ``spread`` is the blur, measured when ``measure_blur`` (wide
     windows: the narrow ones of the final passes would feed back a truncated spread). ``tie``:
-    the seeds of a partial edge (see :func:`refine_by_profiles_f32`). ``noise_std``: the
+    the seeds of a partial edge (see :func:`refine_by_profiles_sampled`). ``noise_std``: the
     image noise the covariance is propagated from (None: the residuals')."""
     partial = tie is not None
     k = cur.shape[0]
     dtype = np.float32
-    lines = _lines(cur, n_lines, rho_range, cap)
-    mean, mass, m2 = _centroids(src, lines, pol, second_moment=measure_blur)
+    lines, mean, mass, m2 = _sampled_lines(src, cur, n_lines, rho_range, cap, pol, measure_blur)
     lower, upper = lines.lower, lines.upper
     box = lines.step**2 / 12.0  # the forward differences' box
     good = lines.valid & np.isfinite(mean) & (mass > 0)
@@ -542,6 +554,62 @@ def line_counts(
     return np.clip(np.round(perim / spacing), 16, 4096).astype(np.intp)
 
 
+def _sampled_lines(
+    src: SampledImage,
+    ellipses: NDArray[np.float64],
+    count: NDArray[np.intp],
+    rho_range: tuple[float, float],
+    cap: NDArray[np.float64],
+    polarity: NDArray[np.float64],
+    second_moment: bool,
+) -> tuple[
+    _Lines,
+    NDArray[np.floating[Any]],
+    NDArray[np.floating[Any]],
+    NDArray[np.floating[Any]] | None,
+]:
+    """The lines of one pass on a block of ellipses and, along them, what :func:`_centroids`
+    gives, from the compiled kernel (:mod:`._profile_kernel`): the arithmetic of :func:`_lines`
+    then :func:`_centroids` (their numpy reference), fit by fit while its pixels are in cache,
+    in SIMD, on the image's own pixels (:func:`sampled_image`), with exact bilinear samples
+    (``cv2.remap`` rounds their positions to 1/32 px). Padding lines have no jacobian (zeros)
+    and no centroid (NaN)."""
+    k = ellipses.shape[0]
+    m = int(count.max())
+    f32 = np.float32
+    valid = np.empty((k, m), dtype=np.uint8)
+    jac = np.empty((k, 5, m), dtype=f32)
+    kappa, lower, upper, step, mean, mass = (np.empty((k, m), dtype=f32) for _ in range(6))
+    m2 = np.empty((k, m), dtype=f32) if second_moment else np.empty(0, dtype=f32)
+    _profile_kernel.sample_lines(
+        src,
+        _KINDS[src.dtype],
+        src.shape[0],
+        src.shape[1],
+        np.ascontiguousarray(ellipses, dtype=np.float64),
+        np.ascontiguousarray(count, dtype=np.int64),
+        float(rho_range[0]),
+        float(rho_range[1]),
+        np.ascontiguousarray(cap, dtype=np.float64),
+        np.ascontiguousarray(polarity, dtype=np.float64),
+        m,
+        second_moment,
+        valid,
+        jac,
+        kappa,
+        lower,
+        upper,
+        step,
+        mean,
+        mass,
+        m2,
+    )
+    # The sample positions are not kept: nothing after the moments needs them.
+    none = np.empty((k, 0), dtype=f32)
+    lines = _Lines(valid.view(np.bool_), none, none, none, none, jac, kappa, lower, upper, step)
+    return lines, mean, mass, (m2 if second_moment else None)
+
+
 def _lines(
     ellipses: NDArray[np.float64],
     count: NDArray[np.intp],
@@ -549,7 +617,8 @@ def _lines(
     cap: NDArray[np.float64],
 ) -> _Lines:
     """``count`` lines on every ellipse of a block, with their geometry and windows, in single
-    precision (see :class:`_Lines`)."""
+    precision (see :class:`_Lines`): the numpy reference of the kernel's lines (the tests hold
+    :func:`_sampled_lines` to it)."""
     dtype = np.float32
     m = int(count.max())
     kk = np.arange(m)[None, :]
@@ -624,7 +693,9 @@ def _centroids(
     *,
     second_moment: bool = True,
 ) -> tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]] | None]:
-    """Per line, over its window: the derivative's centroid (outward, pixels from the origin),
+    """The numpy reference of the kernel's moments (the tests hold :func:`_sampled_lines` to
+    it), on a float32 image. Per line, over its window: the derivative's centroid (outward,
+    pixels from the origin),
     its mass (signed so that the expected polarity is positive) and, with ``second_moment``
     (None otherwise: only passes that measure the blur use it), its second central moment.
 

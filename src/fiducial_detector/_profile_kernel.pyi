@@ -1,0 +1,31 @@
+# The compiled kernel of fiducial_detector.profile_fit (_profile_kernel.c).
+from typing import Any
+
+from numpy.typing import NDArray
+
+# Arrays of the dtypes and shapes sample_lines documents, C-contiguous.
+Buffer = NDArray[Any]
+
+def sample_lines(
+    src: Buffer,
+    kind: int,
+    height: int,
+    width: int,
+    ellipses: Buffer,
+    count: Buffer,
+    lo: float,
+    hi: float,
+    cap: Buffer,
+    polarity: Buffer,
+    m: int,
+    second_moment: bool,
+    valid: Buffer,
+    jac: Buffer,
+    kappa: Buffer,
+    lower: Buffer,
+    upper: Buffer,
+    step: Buffer,
+    mean: Buffer,
+    mass: Buffer,
+    m2: Buffer,
+) -> None: ...

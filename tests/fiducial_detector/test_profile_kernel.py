@@ -1,0 +1,117 @@
+"""The profile fit's compiled kernel (:mod:`fiducial_detector._profile_kernel`) against its numpy
+reference (``profile_fit._lines`` then ``profile_fit._centroids``, with ``cv2.remap``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fit_scenes import render_one, true_ellipse
+
+from fiducial_detector import _profile_kernel, profile_fit
+from fiducial_detector.profile_fit import line_counts, sampled_image
+
+RHO = (0.9, 1.15)
+
+
+def _ellipses(rng: np.random.Generator, n: int, shape: tuple[int, int]) -> np.ndarray:
+    """Random ellipses over an image, some reaching past its borders."""
+    a = rng.uniform(6.0, 60.0, n)
+    return np.column_stack(
+        [
+            rng.uniform(-10.0, shape[1] + 10.0, n),
+            rng.uniform(-10.0, shape[0] + 10.0, n),
+            a,
+            a * rng.uniform(0.3, 1.0, n),
+            rng.uniform(0.0, np.pi, n),
+        ]
+    )
+
+
+def _reference(src: np.ndarray, ellipses: np.ndarray, second: bool) -> tuple:
+    count = line_counts(ellipses)
+    cap = np.full(len(ellipses), 2.5)
+    pol = np.where(np.arange(len(ellipses)) % 2 == 0, 1.0, -1.0)
+    lines = profile_fit._lines(ellipses, count, RHO, cap)
+    mean, mass, m2 = profile_fit._centroids(
+        src.astype(np.float32), lines, pol, second_moment=second
+    )
+    return (lines, mean, mass, m2), (count, cap, pol)
+
+
+@pytest.mark.parametrize("second", [True, False])
+def test_lines_and_moments_match_the_numpy_reference(second: bool) -> None:
+    """Geometry to float32 rounding; moments (borders replicated, as ``cv2.BORDER_REPLICATE``:
+    some ellipses reach past the image) to what ``cv2.remap``'s rounding of the sample
+    positions to 1/32 px makes of a blurred edge (a few 1e-6 px typically)."""
+    rng = np.random.default_rng(5)
+    scene = render_one("ring", 120, 40, 0.7, 0.01, 3)
+    image = scene.image
+    ellipses = np.vstack([_ellipses(rng, 60, image.shape), true_ellipse(scene, 0)[None]])
+    (ref, ref_mean, ref_mass, ref_m2), (count, cap, pol) = _reference(image, ellipses, second)
+    lines, mean, mass, m2 = profile_fit._sampled_lines(
+        sampled_image(image), ellipses, count, RHO, cap, pol, second
+    )
+    valid = ref.valid
+    assert np.array_equal(lines.valid, valid)
+    for name in ("kappa", "lower", "upper", "step"):
+        got, want = getattr(lines, name)[valid], getattr(ref, name)[valid]
+        np.testing.assert_allclose(got, want, rtol=2e-5, atol=2e-5, err_msg=name)
+    jv = np.repeat(valid[:, None, :], 5, axis=1)
+    scale = np.max(np.abs(ref.jac), axis=2, keepdims=True)
+    np.testing.assert_allclose((lines.jac / scale)[jv], (ref.jac / scale)[jv], atol=2e-5)
+    # Padding: no jacobian, no centroid.
+    assert np.all(lines.jac[~jv] == 0.0)
+    assert np.all(np.isnan(mean[~valid]))
+    # Lines with a clear step (a tenth of the full range or more).
+    step = valid & (np.abs(ref_mass) > 25.0)
+    assert step.sum() > 500
+    np.testing.assert_allclose(mass[step], ref_mass[step], rtol=1e-3)
+    off = np.abs(mean[step] - ref_mean[step])
+    assert np.median(off) < 1e-4
+    assert np.max(off) < 2e-3
+    if second:
+        assert m2 is not None and ref_m2 is not None
+        assert np.median(np.abs(m2[step] - ref_m2[step])) < 1e-4
+    else:
+        assert m2 is None
+
+
+def test_pixel_types_sample_alike() -> None:
+    """uint8, uint16 and float32 frames of the same values give the same moments (the integers
+    are read as they are: no float copy of the frame)."""
+    rng = np.random.default_rng(9)
+    image = rng.integers(0, 256, (120, 150)).astype(np.uint8)
+    ellipses = _ellipses(rng, 40, image.shape)
+    count = line_counts(ellipses)
+    cap, pol = np.full(len(ellipses), 3.0), np.ones(len(ellipses))
+    results = [
+        profile_fit._sampled_lines(
+            sampled_image(image.astype(t)), ellipses, count, RHO, cap, pol, True
+        )
+        for t in (np.uint8, np.uint16, np.float32)
+    ]
+    assert sampled_image(image) is not None and sampled_image(image).dtype == np.uint8
+    assert sampled_image(image.astype(np.float64)).dtype == np.float32
+    for other in results[1:]:
+        for a, b in zip(results[0][1:], other[1:], strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_bad_buffers_are_refused() -> None:
+    """Sizes that disagree with the counts, or an unknown pixel kind, raise instead of reading
+    past a buffer."""
+    k, m = 2, 20
+    f32 = np.float32
+    out = [np.empty((k, m), np.uint8), np.empty((k, 5, m), f32)]
+    out += [np.empty((k, m), f32) for _ in range(7)]
+    src = np.zeros((10, 10), f32)
+    ell = np.zeros((k, 5))
+    count = np.full(k, m, dtype=np.int64)
+    args = (ell, count, 0.9, 1.1, np.ones(k), np.ones(k), m, True)
+    with pytest.raises(ValueError, match="src"):
+        _profile_kernel.sample_lines(src, 2, 10, 11, *args, *out)
+    with pytest.raises(ValueError, match="kind"):
+        _profile_kernel.sample_lines(src, 3, 10, 10, *args, *out)
+    short = [*out[:-1], np.empty((k, m - 1), f32)]
+    with pytest.raises(ValueError, match="m2"):
+        _profile_kernel.sample_lines(src, 2, 10, 10, *args, *short)
