@@ -11,7 +11,7 @@ setup(
         Extension(
             "fiducial_detector._profile_kernel",
             sources=["src/fiducial_detector/_profile_kernel.c"],
-            extra_compile_args=["-O3", "-fno-math-errno"],
+            extra_compile_args=["-O3", "-fno-math-errno", "-fno-trapping-math"],
         )
     ]
 )

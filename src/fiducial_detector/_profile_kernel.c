@@ -205,6 +205,29 @@ SIMD static void moments(int n, Py_ssize_t stride, const float *restrict prof, f
     }
 }
 
+/* Ask for the pixels of a fit's box (its ellipse, its windows and a pixel more) before they are
+ * needed: a pass goes from fiducial to fiducial across the frame, which no hardware prefetcher
+ * follows, and each fiducial's first touch of its rows is otherwise a wait on memory. */
+static void prefetch_box(const char *img, Py_ssize_t itemsize, Py_ssize_t w, Py_ssize_t h,
+                         const double *e, double cap)
+{
+    if (!(isfinite(e[0]) && isfinite(e[1]) && isfinite(e[2]))) return;
+    const double reach = e[2] + cap + 2.0;
+    Py_ssize_t x0 = (Py_ssize_t)(e[0] - reach), x1 = (Py_ssize_t)(e[0] + reach);
+    Py_ssize_t y0 = (Py_ssize_t)(e[1] - reach), y1 = (Py_ssize_t)(e[1] + reach);
+    x0 = x0 < 0 ? 0 : x0;
+    y0 = y0 < 0 ? 0 : y0;
+    x1 = x1 > w - 1 ? w - 1 : x1;
+    y1 = y1 > h - 1 ? h - 1 : y1;
+    if (x1 < x0 || y1 < y0) return;
+    for (Py_ssize_t y = y0; y <= y1; y++) {
+        const char *row = img + (y * w) * itemsize;
+        for (Py_ssize_t x = x0 * itemsize; x <= x1 * itemsize; x += 64)
+            __builtin_prefetch(row + x, 0, 1);
+        __builtin_prefetch(row + x1 * itemsize, 0, 1);
+    }
+}
+
 typedef struct {
     Py_buffer src, ellipses, count, cap, polarity;
     Py_buffer valid, jac, kappa, lower, upper, step, mean, mass, m2;
@@ -292,9 +315,12 @@ static PyObject *sample_lines(PyObject *self, PyObject *args)
     }
     float *cps = scratch, *sps = scratch + mm, *su0 = scratch + 2 * mm, *sv0 = scratch + 3 * mm;
     float *sus = scratch + 4 * mm, *svs = scratch + 5 * mm, *prof = scratch + 6 * mm;
+    const Py_ssize_t itemsize = kind == 0 ? 1 : (kind == 1 ? 2 : 4);
     Py_BEGIN_ALLOW_THREADS
+    if (k > 0) prefetch_box((const char *)b.src.buf, itemsize, w, h, ell, capv[0]);
     for (Py_ssize_t f = 0; f < k; f++) {
         const double *e = ell + 5 * f;
+        if (f + 1 < k) prefetch_box((const char *)b.src.buf, itemsize, w, h, e + 5, capv[f + 1]);
         const Fit fit = {e[0], e[1], e[2], e[3], e[4], (float)capv[f], (float)pol[f],
                          (float)(1.0 - lo), (float)(hi - 1.0)};
         int n = (int)(cnt[f] < 0 ? 0 : (cnt[f] > m ? m : cnt[f]));
@@ -340,14 +366,328 @@ static PyObject *sample_lines(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+
+/* ---- After the samples: a full edge's usable lines, their edge positions, the sums. ---- */
+
+/* exp(x) for x <= 0 in float32, branch-free (so that loops calling it run in SIMD): 2^n times
+ * a degree-6 polynomial of 2^f on (-1, 0], relative error ~2e-7; exp(-87) and below give ~0. */
+static inline float exp_neg(float x)
+{
+    x = x > -87.0f ? x : -87.0f;
+    const float t = x * 1.44269504f;
+    const int n = (int)t; /* towards zero: f = t - n in (-1, 0] */
+    const float f = t - (float)n;
+    float p = 1.53533477e-4f;
+    p = p * f + 1.33989842e-3f;
+    p = p * f + 9.61812911e-3f;
+    p = p * f + 5.55041087e-2f;
+    p = p * f + 2.40226507e-1f;
+    p = p * f + 6.93147182e-1f;
+    p = p * f + 1.0f;
+    union {
+        int i;
+        float f;
+    } scale;
+    scale.i = (n + 127) << 23;
+    return p * scale.f;
+}
+
+/* erf(t / sqrt(2)) given gauss = exp(-t^2 / 2) (edge_fit.erf_scaled: Abramowitz & Stegun
+ * 7.1.26, error < 1.5e-7). */
+static inline float erf_scaled(float t, float gauss)
+{
+    const float z = 1.0f / (1.0f + 0.231641888f * fabsf(t));
+    float p = 1.061405429f;
+    p = p * z - 1.453152027f;
+    p = p * z + 1.421413741f;
+    p = p * z - 0.284496736f;
+    p = p * z + 0.254829592f;
+    const float e = 1.0f - p * z * gauss;
+    return copysignf(e, t);
+}
+
+/* The first loop of edge_terms over one fit's lines (see there): branch-free, in SIMD. */
+SIMD static void edge_lines(Py_ssize_t m, const uint8_t *restrict valid, const float *restrict kap,
+                            const float *restrict lower, const float *restrict upper,
+                            const float *restrict stepv, const float *restrict mean,
+                            const float *restrict mass, float bf, float blur2, float cap_t,
+                            float z0f, float v0f, uint8_t *restrict good, float *restrict t,
+                            float *restrict height)
+{
+    const float inv_sqrt_2pi = 0.398942280f;
+    for (int l = 0; l < (int)m; l++) {
+        const float mu = mean[l], ms = mass[l], lw = lower[l], up = upper[l];
+        const float st = stepv[l];
+        const float sg = sqrtf(blur2 + st * st * (1.0f / 12.0f));
+        /* The edge as the centre of the Gaussian whose window-truncated centroid was measured:
+         * the truncated standard normal's mass, mean and variance over the window in spreads
+         * (profile_fit._truncated_normal), the fit's symmetric cap's where the window is it. */
+        const float al = lw / sg, be = up / sg;
+        const float ga = exp_neg(-0.5f * al * al), gb = exp_neg(-0.5f * be * be);
+        float zc = 0.5f * (erf_scaled(be, gb) - erf_scaled(al, ga));
+        zc = zc > 1e-12f ? zc : 1e-12f;
+        const float pa = ga * inv_sqrt_2pi, pb = gb * inv_sqrt_2pi;
+        const float mc = (pa - pb) / zc;
+        float vc = 1.0f + (al * pa - be * pb) / zc - mc * mc;
+        vc = vc > 1e-6f ? vc : 1e-6f;
+        const int cut = (lw > -cap_t) | (up < cap_t);
+        const float z = cut ? zc : z0f, shift = cut ? mc : 0.0f, gain = cut ? vc : v0f;
+        const float pos = (mu - sg * shift) / gain;
+        const float least = 2.0f * sg; /* profile_fit._MIN_WINDOW_SPREADS */
+        /* NaN centroids fail every comparison. */
+        int g = (valid[l] != 0) & (ms > 0.0f) & (pos - lw >= least) & (up - pos >= least);
+        g &= kap[l] * bf <= 0.35f; /* profile_fit._MAX_CURVATURE_SPREAD */
+        height[l] = ms / (z > 1e-6f ? z : 1e-6f);
+        /* A blurred curved edge's centroid lies kappa s^2 / 2 inside it. */
+        t[l] = pos + 0.5f * kap[l] * blur2;
+        good[l] = (uint8_t)g;
+    }
+}
+
+/* Python-visible helper: check a buffer's size, release everything on failure. */
+#define CHECK(buf, n, size, name) \
+    if (ok && !sized(&(buf), (n), (size), (name))) ok = 0
+
+PyDoc_STRVAR(edge_terms_doc,
+"edge_terms(valid, kappa, lower, upper, step, mean, mass, blur, cap, z0, v0, m, good, t,\n"
+"           typical)\n\n"
+"A full edge's lines after their samples (profile_fit._pass, edges printed all round): the\n"
+"usable lines, each one's edge position as the right-hand side t of jac . delta = -t, and each\n"
+"fit's typical step height. Inputs as sample_lines wrote them (k, m), blur, cap and the\n"
+"symmetric window's truncated-normal mass z0 and variance v0 float64 (k,); outputs good uint8\n"
+"(k, m), t float32 (k, m), typical float64 (k,) (NaN where no line was usable).");
+
+static PyObject *edge_terms(PyObject *self, PyObject *args)
+{
+    Py_buffer in[7], per[4], og, ot, oty;
+    memset(in, 0, sizeof(in));
+    memset(per, 0, sizeof(per));
+    memset(&og, 0, sizeof(og));
+    memset(&ot, 0, sizeof(ot));
+    memset(&oty, 0, sizeof(oty));
+    Py_ssize_t m;
+    int ok = PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*y*y*nw*w*w*", &in[0], &in[1], &in[2],
+                              &in[3], &in[4], &in[5], &in[6], &per[0], &per[1], &per[2],
+                              &per[3], &m, &og, &ot, &oty);
+    Py_ssize_t k = ok ? per[0].len / (Py_ssize_t)sizeof(double) : 0;
+    static const char *names[] = {"valid", "kappa", "lower", "upper", "step", "mean", "mass"};
+    for (int i = 0; i < 7; i++) CHECK(in[i], k * m, i == 0 ? 1 : 4, names[i]);
+    CHECK(per[1], k, 8, "cap");
+    CHECK(per[2], k, 8, "z0");
+    CHECK(per[3], k, 8, "v0");
+    CHECK(og, k * m, 1, "good");
+    CHECK(ot, k * m, 4, "t");
+    CHECK(oty, k, 8, "typical");
+    float *height = NULL;
+    if (ok) {
+        height = (float *)malloc((size_t)(m > 0 ? m : 1) * sizeof(float));
+        if (height == NULL) {
+            PyErr_NoMemory();
+            ok = 0;
+        }
+    }
+    if (ok) {
+        const uint8_t *valid = (const uint8_t *)in[0].buf;
+        const float *kap = (const float *)in[1].buf, *lower = (const float *)in[2].buf;
+        const float *upper = (const float *)in[3].buf, *stepv = (const float *)in[4].buf;
+        const float *mean = (const float *)in[5].buf, *mass = (const float *)in[6].buf;
+        const double *blur = (const double *)per[0].buf, *cap = (const double *)per[1].buf;
+        const double *z0 = (const double *)per[2].buf, *v0 = (const double *)per[3].buf;
+        uint8_t *good = (uint8_t *)og.buf;
+        float *t = (float *)ot.buf;
+        double *typical = (double *)oty.buf;
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t f = 0; f < k; f++) {
+            const Py_ssize_t r = f * m;
+            const float bf = (float)blur[f], blur2 = (float)(blur[f] * blur[f]);
+            const float cap_t = (float)cap[f], z0f = (float)z0[f], v0f = (float)v0[f];
+            edge_lines(m, valid + r, kap + r, lower + r, upper + r, stepv + r, mean + r,
+                       mass + r, bf, blur2, cap_t, z0f, v0f, good + r, t + r, height);
+            double sum = 0.0;
+            Py_ssize_t n = 0;
+            for (Py_ssize_t l = 0; l < m; l++) {
+                if (good[r + l]) {
+                    sum += height[l];
+                    n++;
+                }
+            }
+            const double typ = n > 0 ? sum / (double)n : NAN;
+            typical[f] = typ;
+            const float tf = (float)typ;
+            /* The step must be this fiducial's edge: its height near the fit's typical one. */
+            for (Py_ssize_t l = 0; l < m; l++) {
+                const Py_ssize_t i = r + l;
+                const int g = good[i] && height[l] > 0.5f * tf && height[l] < 1.5f * tf;
+                good[i] = (uint8_t)g;
+                if (!g) t[i] = 0.0f;
+            }
+        }
+        Py_END_ALLOW_THREADS
+    }
+    free(height);
+    for (int i = 0; i < 7; i++)
+        if (in[i].obj != NULL) PyBuffer_Release(&in[i]);
+    for (int i = 0; i < 4; i++)
+        if (per[i].obj != NULL) PyBuffer_Release(&per[i]);
+    if (og.obj != NULL) PyBuffer_Release(&og);
+    if (ot.obj != NULL) PyBuffer_Release(&ot);
+    if (oty.obj != NULL) PyBuffer_Release(&oty);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(normal_sums_doc,
+"normal_sums(jac, t, good, m, normal, rhs)\n\n"
+"Each fit's least-squares sums over its good lines of jac . delta = -t: normal float64\n"
+"(k, 5, 5) = sum jac jac^T and rhs float64 (k, 5) = -sum jac t, from jac float32 (k, 5, m),\n"
+"t float32 (k, m) and good uint8 (k, m).");
+
+static PyObject *normal_sums(PyObject *self, PyObject *args)
+{
+    Py_buffer bj, bt, bg, bn, br;
+    memset(&bj, 0, sizeof(bj));
+    memset(&bt, 0, sizeof(bt));
+    memset(&bg, 0, sizeof(bg));
+    memset(&bn, 0, sizeof(bn));
+    memset(&br, 0, sizeof(br));
+    Py_ssize_t m;
+    int ok = PyArg_ParseTuple(args, "y*y*y*nw*w*", &bj, &bt, &bg, &m, &bn, &br);
+    Py_ssize_t k = ok && m > 0 ? bt.len / (Py_ssize_t)(4 * m) : 0;
+    CHECK(bj, 5 * k * m, 4, "jac");
+    CHECK(bt, k * m, 4, "t");
+    CHECK(bg, k * m, 1, "good");
+    CHECK(bn, 25 * k, 8, "normal");
+    CHECK(br, 5 * k, 8, "rhs");
+    if (ok) {
+        const float *jac = (const float *)bj.buf, *t = (const float *)bt.buf;
+        const uint8_t *good = (const uint8_t *)bg.buf;
+        double *normal = (double *)bn.buf, *rhs = (double *)br.buf;
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t f = 0; f < k; f++) {
+            const float *jf = jac + 5 * f * m;
+            const float *tf = t + f * m;
+            const uint8_t *gf = good + f * m;
+            double nn[5][5] = {{0.0}}, rr[5] = {0.0};
+            for (Py_ssize_t l = 0; l < m; l++) {
+                if (!gf[l]) continue;
+                double j[5];
+                for (int p = 0; p < 5; p++) j[p] = jf[p * m + l];
+                for (int p = 0; p < 5; p++) {
+                    rr[p] -= j[p] * tf[l];
+                    for (int q = p; q < 5; q++) nn[p][q] += j[p] * j[q];
+                }
+            }
+            for (int p = 0; p < 5; p++) {
+                rhs[5 * f + p] = rr[p];
+                for (int q = 0; q < 5; q++)
+                    normal[25 * f + 5 * p + q] = q >= p ? nn[p][q] : nn[q][p];
+            }
+        }
+        Py_END_ALLOW_THREADS
+    }
+    PyBuffer_Release(&bj);
+    PyBuffer_Release(&bt);
+    PyBuffer_Release(&bg);
+    PyBuffer_Release(&bn);
+    PyBuffer_Release(&br);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(drop_outliers_doc,
+"drop_outliers(jac, t, use, step, limit, m, normal, rhs, sd, tt, used)\n\n"
+"The first least-squares round's residuals t + jac . step over each fit's used lines (step\n"
+"float64 (k, 5), zeros where the fit was not solvable): their RMS sd (over used - 5, at least\n"
+"1), then the lines beyond limit sds taken out of use (uint8 (k, m), in place) and out of the\n"
+"sums normal and rhs (in place); tt float64 (k,) = sum t^2 and used int64 (k,) over the lines\n"
+"left.");
+
+static PyObject *drop_outliers(PyObject *self, PyObject *args)
+{
+    Py_buffer bj, bt, bu, bs, bn, br, bsd, btt, bused;
+    Py_buffer *all[] = {&bj, &bt, &bu, &bs, &bn, &br, &bsd, &btt, &bused};
+    for (size_t i = 0; i < sizeof(all) / sizeof(all[0]); i++) memset(all[i], 0, sizeof(Py_buffer));
+    Py_ssize_t m;
+    double limit;
+    int ok = PyArg_ParseTuple(args, "y*y*w*y*dnw*w*w*w*w*", &bj, &bt, &bu, &bs, &limit, &m, &bn,
+                              &br, &bsd, &btt, &bused);
+    Py_ssize_t k = ok ? bs.len / (Py_ssize_t)(5 * sizeof(double)) : 0;
+    CHECK(bj, 5 * k * m, 4, "jac");
+    CHECK(bt, k * m, 4, "t");
+    CHECK(bu, k * m, 1, "use");
+    CHECK(bn, 25 * k, 8, "normal");
+    CHECK(br, 5 * k, 8, "rhs");
+    CHECK(bsd, k, 8, "sd");
+    CHECK(btt, k, 8, "tt");
+    CHECK(bused, k, 8, "used");
+    if (ok) {
+        const float *jac = (const float *)bj.buf, *t = (const float *)bt.buf;
+        uint8_t *use = (uint8_t *)bu.buf;
+        const double *step = (const double *)bs.buf;
+        double *normal = (double *)bn.buf, *rhs = (double *)br.buf;
+        double *sdv = (double *)bsd.buf, *ttv = (double *)btt.buf;
+        int64_t *usedv = (int64_t *)bused.buf;
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t f = 0; f < k; f++) {
+            const float *jf = jac + 5 * f * m;
+            const float *tf = t + f * m;
+            uint8_t *uf = use + f * m;
+            const double *sf = step + 5 * f;
+            double ss = 0.0;
+            Py_ssize_t n = 0;
+            for (Py_ssize_t l = 0; l < m; l++) {
+                if (!uf[l]) continue;
+                double r = tf[l];
+                for (int p = 0; p < 5; p++) r += sf[p] * jf[p * m + l];
+                ss += r * r;
+                n++;
+            }
+            const double sd = sqrt(ss / (double)(n - 5 > 1 ? n - 5 : 1));
+            sdv[f] = sd;
+            double tt = 0.0;
+            int64_t kept = 0;
+            for (Py_ssize_t l = 0; l < m; l++) {
+                if (!uf[l]) continue;
+                double j[5], r = tf[l];
+                for (int p = 0; p < 5; p++) {
+                    j[p] = jf[p * m + l];
+                    r += sf[p] * j[p];
+                }
+                if (fabs(r) <= limit * sd) {
+                    tt += (double)tf[l] * tf[l];
+                    kept++;
+                    continue;
+                }
+                /* A few bad lines come out of the sums (cheaper than summing all again). */
+                uf[l] = 0;
+                for (int p = 0; p < 5; p++) {
+                    rhs[5 * f + p] += j[p] * tf[l];
+                    for (int q = 0; q < 5; q++) normal[25 * f + 5 * p + q] -= j[p] * j[q];
+                }
+            }
+            ttv[f] = tt;
+            usedv[f] = kept;
+        }
+        Py_END_ALLOW_THREADS
+    }
+    for (size_t i = 0; i < sizeof(all) / sizeof(all[0]); i++)
+        if (all[i]->obj != NULL) PyBuffer_Release(all[i]);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
+
 static PyMethodDef methods[] = {
     {"sample_lines", sample_lines, METH_VARARGS, sample_lines_doc},
+    {"edge_terms", edge_terms, METH_VARARGS, edge_terms_doc},
+    {"normal_sums", normal_sums, METH_VARARGS, normal_sums_doc},
+    {"drop_outliers", drop_outliers, METH_VARARGS, drop_outliers_doc},
     {NULL, NULL, 0, NULL},
 };
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_profile_kernel",
-    "Compiled kernel of fiducial_detector.profile_fit (lines and their moments).", -1, methods,
+    "Compiled kernel of fiducial_detector.profile_fit (lines, their moments, edges and sums).", -1, methods,
 };
 
 PyMODINIT_FUNC PyInit__profile_kernel(void)

@@ -29,3 +29,36 @@ def sample_lines(
     mass: Buffer,
     m2: Buffer,
 ) -> None: ...
+def edge_terms(
+    valid: Buffer,
+    kappa: Buffer,
+    lower: Buffer,
+    upper: Buffer,
+    step: Buffer,
+    mean: Buffer,
+    mass: Buffer,
+    blur: Buffer,
+    cap: Buffer,
+    z0: Buffer,
+    v0: Buffer,
+    m: int,
+    good: Buffer,
+    t: Buffer,
+    typical: Buffer,
+) -> None: ...
+def normal_sums(
+    jac: Buffer, t: Buffer, good: Buffer, m: int, normal: Buffer, rhs: Buffer
+) -> None: ...
+def drop_outliers(
+    jac: Buffer,
+    t: Buffer,
+    use: Buffer,
+    step: Buffer,
+    limit: float,
+    m: int,
+    normal: Buffer,
+    rhs: Buffer,
+    sd: Buffer,
+    tt: Buffer,
+    used: Buffer,
+) -> None: ...

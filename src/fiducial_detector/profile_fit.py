@@ -405,8 +405,55 @@ def _pass(
     image noise the covariance is propagated from (None: the residuals')."""
     partial = tie is not None
     k = cur.shape[0]
-    dtype = np.float32
     lines, mean, mass, m2 = _sampled_lines(src, cur, n_lines, rho_range, cap, pol, measure_blur)
+    if partial or measure_blur:
+        good, t, typical, blur = _edge_terms(lines, mean, mass, m2, blur, cap, partial)
+    else:
+        good, t, typical = _full_edge_terms(lines, mean, mass, blur, cap)
+    symmetric = _symmetric_window(cap, blur)
+    prior = None if tie is None else _tie(lines, cur, tie)
+    noise_var = None
+    if noise_std is not None and not measure_blur:
+        # Each line's edge is linear in its samples (the centroid, then the window's fixed
+        # shift and gain): its variance from the image noise, per fit, at the symmetric window
+        # most of its lines have (their spacing, gain and mass: the typical step height times
+        # the window's share of it) with the centroid in the middle, where a converged fit's
+        # edge lies. (The coarse pass's covariance is not used.)
+        step0 = 2.0 * cap / (SAMPLES - 1)
+        share, gain0 = symmetric
+        with np.errstate(invalid="ignore", divide="ignore"):
+            spread = step0 / (typical * share * gain0)
+        noise_var = noise_std * noise_std * _line_noise_factor(step0) * spread**2
+    delta, cov_f, rms, used = _solve(
+        lines.jac, t, good, prior, noise_var, correlation_factor(spacing)
+    )
+    ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
+    theta = np.zeros((k, 5))
+    theta[:, 2:] = quadratic_form(cur[:, 2:5])
+    theta += np.where(ok[:, None], np.nan_to_num(delta), 0.0)
+    new, jac5 = from_quadratic_form(theta)
+    new[:, :2] += cur[:, :2]
+    cov = jac5 @ cov_f @ np.swapaxes(jac5, 1, 2)
+    ok &= np.all(np.isfinite(new), axis=1) & (new[:, 3] > 0.5)
+    ok &= np.all(np.isfinite(cov), axis=(1, 2))
+    return EdgeFits(new, cov, pol * typical, blur, rms, used, ok)
+
+
+def _edge_terms(
+    lines: _Lines,
+    mean: NDArray[np.floating[Any]],
+    mass: NDArray[np.floating[Any]],
+    m2: NDArray[np.floating[Any]] | None,
+    blur: NDArray[np.float64],
+    cap: NDArray[np.float64],
+    partial: bool,
+) -> tuple[NDArray[np.bool_], NDArray[np.floating[Any]], NDArray[np.float64], NDArray[np.float64]]:
+    """A pass' lines after their samples: the usable ones, each one's edge position as the
+    right-hand side ``t`` of ``jac . delta = -t``, each fit's typical step height, and the blur
+    (measured here where ``m2`` is given: the coarse pass). ``partial``: the lines of a partial
+    edge (see :func:`refine_by_profiles_sampled`). In numpy: the reference of the kernel's
+    :func:`_full_edge_terms`, and what partial edges and the coarse pass use."""
+    dtype = np.float32
     lower, upper = lines.lower, lines.upper
     box = lines.step**2 / 12.0  # the forward differences' box
     good = lines.valid & np.isfinite(mean) & (mass > 0)
@@ -425,13 +472,12 @@ def _pass(
         good &= np.abs(step - top[:, None]) <= _ARC_STEP_TOLERANCE * top[:, None]
         # Lines across white sectors have no centroid (nor any use below).
         mean = np.where(good, mean, 0.0)
-    if measure_blur:
+    if m2 is not None:
         # From lines whose window holds both tails (at the assumed blur), their slight
         # truncation undone.
         wide = good & (mean - lower >= _WIDE_WINDOW_SPREADS * sg)
         wide &= upper - mean >= _WIDE_WINDOW_SPREADS * sg
         _, _, ratio = _truncated_normal((lower - mean) / sg, (upper - mean) / sg)
-        assert m2 is not None
         est = _mean(np.clip(m2 / ratio - box, 0.0, 9.0), wide)
         blur = np.where(np.isfinite(est), np.sqrt(np.maximum(est, 0.04)), blur)
         blur2 = (blur * blur).astype(dtype)[:, None]
@@ -461,32 +507,40 @@ def _pass(
     # A blurred curved edge's centroid lies kappa s^2 / 2 inside it; then the linearised
     # distance d_new(origin) = jac . delta = -t.
     t = np.where(good, pos + 0.5 * lines.kappa * blur2, 0.0)
-    prior = None if tie is None else _tie(lines, cur, tie)
-    noise_var = None
-    if noise_std is not None and not measure_blur:
-        # Each line's edge is linear in its samples (the centroid, then the window's fixed
-        # shift and gain): its variance from the image noise, per fit, at the symmetric window
-        # most of its lines have (their spacing, gain and mass: the typical step height times
-        # the window's share of it) with the centroid in the middle, where a converged fit's
-        # edge lies. (The coarse pass's covariance is not used.)
-        step0 = 2.0 * cap / (SAMPLES - 1)
-        share, gain0 = symmetric
-        with np.errstate(invalid="ignore", divide="ignore"):
-            spread = step0 / (typical * share * gain0)
-        noise_var = noise_std * noise_std * _line_noise_factor(step0) * spread**2
-    delta, cov_f, rms, used = _solve(
-        lines.jac, t, good, prior, noise_var, correlation_factor(spacing)
+    return good, t, typical, blur
+
+
+def _full_edge_terms(
+    lines: _Lines,
+    mean: NDArray[np.floating[Any]],
+    mass: NDArray[np.floating[Any]],
+    blur: NDArray[np.float64],
+    cap: NDArray[np.float64],
+) -> tuple[NDArray[np.bool_], NDArray[np.float32], NDArray[np.float64]]:
+    """:func:`_edge_terms` of an edge printed all round, at a known blur, from the kernel."""
+    k, m = lines.valid.shape
+    z0, v0 = _symmetric_window(cap, blur)
+    good = np.empty((k, m), dtype=np.uint8)
+    t = np.empty((k, m), dtype=np.float32)
+    typical = np.empty(k)
+    _profile_kernel.edge_terms(
+        lines.valid,
+        lines.kappa,
+        lines.lower,
+        lines.upper,
+        lines.step,
+        mean,
+        mass,
+        np.ascontiguousarray(blur, dtype=np.float64),
+        np.ascontiguousarray(cap, dtype=np.float64),
+        z0,
+        v0,
+        m,
+        good,
+        t,
+        typical,
     )
-    ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
-    theta = np.zeros((k, 5))
-    theta[:, 2:] = quadratic_form(cur[:, 2:5])
-    theta += np.where(ok[:, None], np.nan_to_num(delta), 0.0)
-    new, jac5 = from_quadratic_form(theta)
-    new[:, :2] += cur[:, :2]
-    cov = jac5 @ cov_f @ np.swapaxes(jac5, 1, 2)
-    ok &= np.all(np.isfinite(new), axis=1) & (new[:, 3] > 0.5)
-    ok &= np.all(np.isfinite(cov), axis=(1, 2))
-    return EdgeFits(new, cov, pol * typical, blur, rms, used, ok)
+    return good.view(np.bool_), t, typical
 
 
 def _symmetric_window(
@@ -854,19 +908,21 @@ def _solve(
     or the residuals' variance less the tolerated misfit (:data:`MISFIT_TOLERANCE_PX`) where
     that is larger; ``correlation``: the lines' :func:`correlation_factor`, which widens the
     covariance. The returned RMS residual is the residuals' either way."""
-    k = jac.shape[0]
-    # The sums in the lines' precision (a few hundred terms each: relative error ~1e-6), solved
-    # in double precision.
-    jw = jac * good[:, None, :]
-    normal = (jw @ np.swapaxes(jac, 1, 2)).astype(np.float64)
-    rhs = -(jw @ t[:, :, None])[:, :, 0].astype(np.float64)
-    use = good
+    k, _, m = jac.shape
+    # The sums and the residuals' round (kernel), the small systems solved here.
+    jac32 = np.ascontiguousarray(jac, dtype=np.float32)
+    t32 = np.ascontiguousarray(t, dtype=np.float32)
+    use = np.array(good, dtype=np.uint8)  # a copy: the outliers leave it
+    normal = np.empty((k, 5, 5))
+    rhs = np.empty((k, 5))
+    _profile_kernel.normal_sums(jac32, t32, use, m, normal, rhs)
     # A partial edge's lines are weighed against its prior by their sd: assumed in the first
     # round, the residuals' in the second.
     sd = np.full(k, _TIE_LINE_SD)
+    tt = np.empty(k)
+    used = use.sum(axis=1, dtype=np.int64)
     inv: NDArray[np.float64] | None = None
     for rnd in range(2):
-        used = use.sum(axis=1)
         solvable = used >= _MIN_LINES
         n_solvable = int(solvable.sum())
         delta = np.full((k, 5), np.nan)
@@ -891,21 +947,14 @@ def _solve(
                 )
         step = np.nan_to_num(delta)
         if rnd == 0:
-            resid = np.where(use, t + (step.astype(jac.dtype)[:, None, :] @ jac)[:, 0, :], 0.0)
-            sd = np.sqrt((resid * resid).sum(axis=1) / np.maximum(used - 5, 1))
-            # A few bad lines inflate the RMS only a little among a fit's hundred or more.
-            keep = np.abs(resid) <= _OUTLIER_SDS * sd[:, None]
-            # The few lines dropped come out of the sums (cheaper than summing all again).
-            fit, line = np.nonzero(use & ~keep)
-            if fit.size:
-                jd = jac[fit, :, line].astype(np.float64)
-                np.subtract.at(normal, fit, jd[:, :, None] * jd[:, None, :])
-                np.add.at(rhs, fit, jd * t[fit, line][:, None])
-            use = use & keep
+            # The residuals' RMS; a few bad lines inflate it only a little among a fit's
+            # hundred or more. Lines beyond _OUTLIER_SDS of it come out of the sums.
+            _profile_kernel.drop_outliers(
+                jac32, t32, use, step, _OUTLIER_SDS, m, normal, rhs, sd, tt, used
+            )
         else:
             # The residuals' sum of squares from the sums already formed: t.t - 2 delta.r +
             # delta^T N delta over the lines used (r = -J t), no second pass over the lines.
-            tt = np.where(use, t * t, 0.0).sum(axis=1, dtype=np.float64)
             ss = tt - 2.0 * np.einsum("ki,ki->k", step, rhs)
             ss += np.einsum("ki,kij,kj->k", step, normal, step)
             sd = np.sqrt(np.maximum(ss, 0.0) / np.maximum(used - 5, 1))

@@ -115,3 +115,72 @@ def test_bad_buffers_are_refused() -> None:
     short = [*out[:-1], np.empty((k, m - 1), f32)]
     with pytest.raises(ValueError, match="m2"):
         _profile_kernel.sample_lines(src, 2, 10, 10, *args, *short)
+
+
+def test_full_edge_terms_match_the_numpy_reference() -> None:
+    """The kernel's usable lines, edge positions and typical step heights of a full edge are
+    the numpy reference's (``profile_fit._edge_terms``), to float32 rounding."""
+    rng = np.random.default_rng(11)
+    scene = render_one("ring", 120, 50, 0.7, 0.01, 4)
+    truth = true_ellipse(scene, 0)
+    # Fits near the edge (as in the final passes) and some nowhere near one.
+    ellipses = np.vstack(
+        [
+            truth + rng.normal(0.0, 0.05, (40, 5)) * [1, 1, 1, 1, 0.01],
+            _ellipses(rng, 20, scene.image.shape),
+        ]
+    )
+    ellipses[:, 2:4] = np.sort(ellipses[:, 2:4], axis=1)[:, ::-1]
+    count = line_counts(ellipses)
+    cap = np.full(len(ellipses), 1.8)
+    pol = np.ones(len(ellipses))
+    blur = rng.uniform(0.6, 0.9, len(ellipses))
+    lines, mean, mass, _ = profile_fit._sampled_lines(
+        sampled_image(scene.image), ellipses, count, RHO, cap, pol, False
+    )
+    good, t, typical = profile_fit._full_edge_terms(lines, mean, mass, blur, cap)
+    ref_good, ref_t, ref_typical, _ = profile_fit._edge_terms(
+        lines, mean, mass, None, blur, cap, False
+    )
+    assert ref_good[:40].mean() > 0.5  # the test sees usable lines
+    # A line exactly at a limit may flip on rounding; none did on this scene.
+    assert np.mean(good != ref_good) <= 1e-3
+    both = good & ref_good
+    np.testing.assert_allclose(t[both], ref_t[both], atol=2e-5)
+    assert np.all(t[~good] == 0.0)
+    fin = np.isfinite(ref_typical)
+    assert np.array_equal(np.isfinite(typical), fin)
+    np.testing.assert_allclose(typical[fin], ref_typical[fin], rtol=1e-5)
+
+
+def test_sums_and_outlier_round_match_brute_force() -> None:
+    """``normal_sums`` and ``drop_outliers`` against numpy on random lines: the sums over the
+    good lines, the residuals' RMS, lines beyond the limit left out of use and of the sums."""
+    rng = np.random.default_rng(12)
+    k, m = 6, 50
+    jac = rng.normal(size=(k, 5, m)).astype(np.float32)
+    t = rng.normal(size=(k, m)).astype(np.float32)
+    t[:, :3] += 20.0  # outliers
+    good = rng.random((k, m)) < 0.8
+    good[0] = False  # a fit with no lines
+    use = good.astype(np.uint8)
+    normal, rhs = np.empty((k, 5, 5)), np.empty((k, 5))
+    _profile_kernel.normal_sums(jac, t, use, m, normal, rhs)
+    j64, t64, g = jac.astype(np.float64), t.astype(np.float64), good[:, None, :]
+    np.testing.assert_allclose(normal, np.einsum("kpl,kql->kpq", j64 * g, j64), atol=1e-9)
+    np.testing.assert_allclose(rhs, -np.einsum("kpl,kl->kp", j64 * g, t64), atol=1e-9)
+    step = rng.normal(size=(k, 5)) * 0.1
+    sd, tt, used = np.empty(k), np.empty(k), np.empty(k, dtype=np.int64)
+    _profile_kernel.drop_outliers(jac, t, use, step, 2.0, m, normal, rhs, sd, tt, used)
+    resid = t64 + np.einsum("kp,kpl->kl", step, j64)
+    n = good.sum(axis=1)
+    want_sd = np.sqrt(np.where(good, resid**2, 0.0).sum(axis=1) / np.maximum(n - 5, 1))
+    np.testing.assert_allclose(sd, want_sd, rtol=1e-9)
+    keep = good & (np.abs(resid) <= 2.0 * want_sd[:, None])
+    assert np.array_equal(use.astype(bool), keep)
+    assert keep[1:, :3].sum() == 0 and keep.sum() > 0.5 * good.sum()
+    kk = keep[:, None, :]
+    np.testing.assert_allclose(normal, np.einsum("kpl,kql->kpq", j64 * kk, j64), atol=1e-9)
+    np.testing.assert_allclose(rhs, -np.einsum("kpl,kl->kp", j64 * kk, t64), atol=1e-9)
+    np.testing.assert_allclose(tt, np.where(keep, t64**2, 0.0).sum(axis=1), rtol=1e-9)
+    assert np.array_equal(used, keep.sum(axis=1))
