@@ -19,6 +19,9 @@
 #include <string.h>
 
 #define SAMPLES 7
+/* Farthest a sample lies from its fit's centre, pixels: larger ellipses are not sampled (no
+ * fiducial in a frame of up to 4096 px comes near). */
+#define MAX_REACH 4096.0f
 
 /* The per-line loops are built twice, for AVX2 with FMA (x86-64-v3) and for the baseline, and
  * the loader picks the one the CPU runs; noinline keeps each loop whole for the vectoriser. */
@@ -150,9 +153,10 @@ SIMD static void NAME(const TYPE *restrict img, int w, int h, int cu, int cv, fl
     for (int l = 0; l < n; l++) { \
         const float x = fu + (u0[l] + su[l] * frac); \
         const float y = fv + (v0[l] + sv[l] * frac); \
-        /* floor as the truncation of a positive number: a window lies within 4096 px of its \
-         * fit's centre. */ \
-        const int xi = (int)(x + 4096.0f) - 4096, yi = (int)(y + 4096.0f) - 4096; \
+        /* floor as the truncation of a positive number: windows lie within MAX_REACH of their \
+         * fit's centre (sample_lines leaves larger fits out). */ \
+        const int xi = (int)(x + MAX_REACH) - (int)MAX_REACH; \
+        const int yi = (int)(y + MAX_REACH) - (int)MAX_REACH; \
         const float ax = x - (float)xi, ay = y - (float)yi; \
         int x0 = xi + cu, y0 = yi + cv; \
         int x1 = x0 + 1, y1 = y0 + 1; \
@@ -324,6 +328,12 @@ static PyObject *sample_lines(PyObject *self, PyObject *args)
         const Fit fit = {e[0], e[1], e[2], e[3], e[4], (float)capv[f], (float)pol[f],
                          (float)(1.0 - lo), (float)(hi - 1.0)};
         int n = (int)(cnt[f] < 0 ? 0 : (cnt[f] > m ? m : cnt[f]));
+        /* A fit the samples cannot reach safely (not finite, centre off any image, windows past
+         * MAX_REACH) gets padding only: no usable line. */
+        const double reach = fabs(e[2]) + fabs(capv[f]) + 2.0;
+        if (!(isfinite(e[0]) && isfinite(e[1]) && isfinite(e[4]) && fabs(e[0]) < 1e7 &&
+              fabs(e[1]) < 1e7 && e[3] > 0.0 && reach < MAX_REACH - 8.0))
+            n = 0;
         const Py_ssize_t r = f * m;
         float *j0 = jac + 5 * r;
         angles(&fit, n, cps, sps);

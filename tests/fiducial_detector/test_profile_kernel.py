@@ -184,3 +184,26 @@ def test_sums_and_outlier_round_match_brute_force() -> None:
     np.testing.assert_allclose(rhs, -np.einsum("kpl,kl->kp", j64 * kk, t64), atol=1e-9)
     np.testing.assert_allclose(tt, np.where(keep, t64**2, 0.0).sum(axis=1), rtol=1e-9)
     assert np.array_equal(used, keep.sum(axis=1))
+
+
+def test_fits_the_samples_cannot_reach_get_no_lines() -> None:
+    """Ellipses not finite, centred far off the image or too large to sample safely give
+    padding only (no usable line), and the others in the same call are unaffected."""
+    image = np.zeros((50, 50), dtype=np.float32)
+    image[:, 25:] = 100.0
+    ok = [25.0, 25.0, 10.0, 8.0, 0.2]
+    ellipses = np.array(
+        [
+            ok,
+            [np.nan, 25.0, 10.0, 8.0, 0.2],
+            [3e7, 25.0, 10.0, 8.0, 0.2],
+            [25.0, 25.0, 5000.0, 8.0, 0.2],
+            ok,
+        ]
+    )
+    count = np.full(len(ellipses), 64)
+    cap, pol = np.full(len(ellipses), 3.0), np.ones(len(ellipses))
+    lines, mean, mass, _ = profile_fit._sampled_lines(image, ellipses, count, RHO, cap, pol, False)
+    assert np.all(lines.valid[[0, 4]]) and not np.any(lines.valid[1:4])
+    assert np.all(np.isnan(mean[1:4])) and np.all(mass[1:4] == 0.0)
+    np.testing.assert_array_equal(mean[0], mean[4])
