@@ -10,8 +10,11 @@ Frames (3008 x 2000, 8 bit, Gaussian blur 0.5 px, noise 1 % of full range):
 Ours also runs with ``decimate=2`` (candidates found on the frame reduced 2x, like AprilTag's
 ``quad_decimate 2``; codes and fits at full resolution).
 
-Every detector runs single-threaded (``cv2.setNumThreads(1)``, ``nthreads=1``); the table gives the
-median wall time and CPU time over ``--repeats`` runs and how many markers were found correctly.
+Every detector runs single-threaded (``cv2.setNumThreads(1)``, ``nthreads=1``), all of them in
+turn in each of ``--repeats`` rounds (the order rotated round by round: the VM's speed drifts
+over seconds, so timing one detector's runs back to back and then the next's compared phases,
+not detectors); the table gives the median wall time and CPU time and how many markers were
+found correctly, then each of our runs over AprilTag's at quad_decimate 2 in the same round.
 Our detector's time is also split into its stages. Reference figures from
 ``../shared/reference/README.md`` (measured elsewhere on 2 cores) are printed beside.
 
@@ -27,6 +30,7 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from functools import partial
 from typing import Any, cast
 
@@ -127,6 +131,35 @@ def stage_times(image: NDArray[Any], design: str, repeats: int) -> list[tuple[st
     ]
 
 
+@dataclass
+class Contender:
+    """One detector on its frame: ``run`` detects, ``score`` says how many it found right and
+    wrong; ``wall`` and ``cpu`` collect the milliseconds of each timed run."""
+
+    name: str
+    run: Callable[[], Any]
+    score: Callable[[Any], tuple[int, int]]
+    wall: list[float] = field(default_factory=list)
+    cpu: list[float] = field(default_factory=list)
+    found: str = ""
+
+
+def interleaved(contenders: list[Contender], repeats: int) -> None:
+    """Each contender once as a warm-up (scored), then ``repeats`` rounds in which each runs once,
+    the order rotated round by round: the VM's speed drifts over seconds, and a detector timed
+    over consecutive runs of its own meets a different phase from the next one's."""
+    for c in contenders:
+        good, wrong = c.score(c.run())
+        c.found = f"{good} ({wrong})"
+    for r in range(repeats):
+        k = r % len(contenders)
+        for c in contenders[k:] + contenders[:k]:
+            w0, c0 = time.perf_counter(), time.process_time()
+            c.run()
+            c.wall.append(1000.0 * (time.perf_counter() - w0))
+            c.cpu.append(1000.0 * (time.process_time() - c0))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
@@ -136,19 +169,24 @@ def main(argv: list[str] | None = None) -> int:
     repeats = 1 if args.quick else args.repeats
     rng = np.random.default_rng(20)
     camera = paper_camera(*FRAME)
-    rows: list[tuple[str, float, float, str]] = []
+    contenders: list[Contender] = []
     stages: dict[str, list[tuple[str, float]]] = {}
     t0 = time.perf_counter()
+    scenes = {}
     for design in ("ring",) if args.quick else ("ring", "dot"):
         scene = random_scene(
             camera, N_TARGETS, SIZE_PX, design, rng, 60.0, True, blur_sigma=BLUR, noise=NOISE
         )
+        scenes[design] = scene
         for mode, subpixel, decimate in (
             (design, "profile", 1),
             (design, "profile", 2),
             ("any", "profile", 1),
             (design, "ml", 1),
         ):
+            name = f"armourcam {design} frame, design={mode}"
+            name += "" if subpixel == "profile" else f", {subpixel}"
+            name += "" if decimate == 1 else f", decimate {decimate}"
             run = partial(
                 detect,
                 scene.image,
@@ -156,14 +194,13 @@ def main(argv: list[str] | None = None) -> int:
                 subpixel=cast(SubpixelMethod, subpixel),
                 decimate=decimate,
             )
-            wall, cpu, found = timed(run, repeats)
-            good, wrong = count_correct(found, scene.truth)
-            name = f"armourcam {design} frame, design={mode}"
-            name += "" if subpixel == "profile" else f", {subpixel}"
-            name += "" if decimate == 1 else f", decimate {decimate}"
-            rows.append((name, wall, cpu, f"{good} ({wrong})"))
-        stages[design] = stage_times(scene.image, design, repeats)
+            contenders.append(Contender(name, run, partial(count_correct, truth=scene.truth)))
     tags, ids = tag_frame(rng)
+
+    def tag_score(found_ids: set[int], n_found: int) -> tuple[int, int]:
+        good = len(found_ids & set(ids))
+        return good, n_found - good
+
     try:
         from pupil_apriltags import Detector
     except ImportError:  # pragma: no cover - dev extra not installed
@@ -171,28 +208,55 @@ def main(argv: list[str] | None = None) -> int:
     if Detector is not None:
         for decimate in (1.0, 2.0):
             det = Detector(families="tag36h11", nthreads=1, quad_decimate=decimate)
-            wall, cpu, found = timed(partial(det.detect, tags), repeats)
-            good = len({f.tag_id for f in found} & set(ids))
-            name = f"AprilTag 3, quad_decimate {decimate:.0f}"
-            rows.append((name, wall, cpu, f"{good} ({len(found) - good})"))
+            contenders.append(
+                Contender(
+                    f"AprilTag 3, quad_decimate {decimate:.0f}",
+                    partial(det.detect, tags),
+                    lambda found: tag_score({f.tag_id for f in found}, len(found)),
+                )
+            )
     aruco = cv2.aruco.ArucoDetector(
         cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11),
         cv2.aruco.DetectorParameters(),
     )
-    wall, cpu, (_, found_ids, _) = timed(lambda: aruco.detectMarkers(tags), repeats)
-    got = set() if found_ids is None else {int(i) for i in found_ids.ravel()}
-    n = 0 if found_ids is None else len(found_ids)
-    rows.append(("OpenCV ArUco (tag36h11)", wall, cpu, f"{len(got & set(ids))} ({n - len(got)})"))
+
+    def aruco_score(result: Any) -> tuple[int, int]:
+        found_ids = result[1]
+        if found_ids is None:
+            return 0, 0
+        return tag_score({int(i) for i in found_ids.ravel()}, len(found_ids))
+
+    contenders.append(
+        Contender("OpenCV ArUco (tag36h11)", lambda: aruco.detectMarkers(tags), aruco_score)
+    )
+    interleaved(contenders, repeats)
+    for design, scene in scenes.items():
+        stages[design] = stage_times(scene.image, design, repeats)
 
     print(
         f"detector speed: {FRAME[0]}x{FRAME[1]} frames, {N_TARGETS} markers of {SIZE_PX} px, "
-        f"one thread, median of {repeats} run(s); setup {time.perf_counter() - t0:.0f} s"
+        f"one thread, median of {repeats} interleaved run(s); setup and runs "
+        f"{time.perf_counter() - t0:.0f} s"
     )
     print(f"{'detector':44s} {'wall ms':>9s} {'cpu ms':>9s}  {'found (wrong)':>13s}  reference ms")
-    for name, wall, cpu, found_s in rows:
-        ref = REFERENCE_MS.get(name)
+    for c in contenders:
+        ref = REFERENCE_MS.get(c.name)
         ref_s = f"{ref:.0f}" if ref is not None else "-"
-        print(f"{name:44s} {wall:9.1f} {cpu:9.1f}  {found_s:>13s}  {ref_s}")
+        print(
+            f"{c.name:44s} {statistics.median(c.wall):9.1f} {statistics.median(c.cpu):9.1f}  "
+            f"{c.found:>13s}  {ref_s}"
+        )
+    by_name = {c.name: c for c in contenders}
+    qd2 = by_name.get("AprilTag 3, quad_decimate 2")
+    if qd2 is not None:
+        # Run by run, each against the AprilTag run of the same round: the ratio the drift
+        # leaves least room to move.
+        print("\nours / AprilTag 3 at quad_decimate 2, round by round: median (lowest-highest)")
+        for c in contenders:
+            if not c.name.startswith("armourcam") or ", ml" in c.name:
+                continue
+            ratio = np.array(c.wall) / np.array(qd2.wall)
+            print(f"  {c.name:44s} {np.median(ratio):6.2f}x ({ratio.min():.2f}-{ratio.max():.2f})")
     for design, parts in stages.items():
         print(f"\narmourcam stages, {design} frame (cpu ms)")
         for label, ms in parts:
