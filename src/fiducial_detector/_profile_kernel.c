@@ -1,10 +1,11 @@
 /* Compiled kernel of fiducial_detector.profile_fit, one sampling pass of the edge-profile fit:
  *
  *   sample_lines   the lines on each ellipse and the intensity moments along them
- *                  (profile_fit._lines then profile_fit._centroids, their numpy reference);
- *   edge_terms     a full edge's usable lines and edge positions (profile_fit._edge_terms);
- *   normal_sums,   the least-squares sums over the lines, and the first round's outliers out
- *   drop_outliers  of them (profile_fit._solve keeps the small solves).
+ *                  (profile_fit._lines then profile_fit._centroids, their numpy reference),
+ *                  and for an edge printed all round its usable lines, edge positions and
+ *                  least-squares sums (profile_fit._edge_terms, the sums of _solve);
+ *   normal_sums,   the least-squares sums over given lines, and the first round's outliers
+ *   drop_outliers  out of them (profile_fit._solve keeps the small solves).
  *
  * Why compiled: numpy works a pass as whole (fits x lines x samples) arrays, each a fresh
  * temporary through memory, and cv2.remap needs sample maps built and a float32 copy of the
@@ -241,13 +242,16 @@ static void prefetch_box(const char *img, Py_ssize_t itemsize, Py_ssize_t w, Py_
 typedef struct {
     Py_buffer src, ellipses, count, cap, polarity;
     Py_buffer valid, jac, kappa, lower, upper, step, mean, mass, m2;
+    /* A full edge's terms and sums, optional. */
+    Py_buffer blur, z0, v0, good, t, typical, normal, rhs;
 } Buffers;
 
 static void release(Buffers *b)
 {
-    Py_buffer *all[] = {&b->src, &b->ellipses, &b->count, &b->cap, &b->polarity, &b->valid,
-                        &b->jac, &b->kappa, &b->lower, &b->upper, &b->step, &b->mean,
-                        &b->mass, &b->m2};
+    Py_buffer *all[] = {&b->src,   &b->ellipses, &b->count, &b->cap,   &b->polarity, &b->valid,
+                        &b->jac,   &b->kappa,    &b->lower, &b->upper, &b->step,     &b->mean,
+                        &b->mass,  &b->m2,       &b->blur,  &b->z0,    &b->v0,       &b->good,
+                        &b->t,     &b->typical,  &b->normal, &b->rhs};
     for (size_t i = 0; i < sizeof(all) / sizeof(all[0]); i++)
         if (all[i]->obj != NULL) PyBuffer_Release(all[i]);
 }
@@ -261,127 +265,6 @@ static int sized(Py_buffer *b, Py_ssize_t n, Py_ssize_t itemsize, const char *na
     }
     return 1;
 }
-
-PyDoc_STRVAR(sample_lines_doc,
-"sample_lines(src, kind, height, width, ellipses, count, lo, hi, cap, polarity, m,\n"
-"             second_moment, valid, jac, kappa, lower, upper, step, mean, mass, m2)\n\n"
-"The lines of one profile pass on k ellipses and the moments along them, written into the\n"
-"given C-contiguous buffers: src (height, width) of uint8 (kind 0), uint16 (1) or float32 (2)\n"
-"pixels; ellipses float64 (k, 5) as (u, v, a,\n"
-"b, angle); count int64 (k,); cap, polarity float64 (k,); outputs valid uint8 (k, m), jac\n"
-"float32 (k, 5, m), the rest float32 (k, m) (m2 only when second_moment). Padding lines (past a\n"
-"fit's count) get valid 0, zero jac, mean NaN, mass 0 and the full window.");
-
-static PyObject *sample_lines(PyObject *self, PyObject *args)
-{
-    Buffers b;
-    memset(&b, 0, sizeof(b));
-    Py_ssize_t h, w, m;
-    double lo, hi;
-    int second, kind;
-    if (!PyArg_ParseTuple(args, "y*inny*y*ddy*y*npw*w*w*w*w*w*w*w*w*", &b.src, &kind, &h, &w,
-                          &b.ellipses, &b.count, &lo, &hi, &b.cap, &b.polarity, &m, &second,
-                          &b.valid, &b.jac, &b.kappa, &b.lower, &b.upper, &b.step, &b.mean,
-                          &b.mass, &b.m2)) {
-        release(&b);
-        return NULL;
-    }
-    Py_ssize_t k = b.cap.len / (Py_ssize_t)sizeof(double);
-    if (h < 1 || w < 1 || h > INT_MAX / (w > 0 ? w : 1) || m < 0) {
-        PyErr_SetString(PyExc_ValueError, "bad image or line count");
-        release(&b);
-        return NULL;
-    }
-    if (kind != 0 && kind != 1 && kind != 2) {
-        PyErr_Format(PyExc_ValueError, "kind must be 0 (uint8), 1 (uint16) or 2 (float32), got %d",
-                     kind);
-        release(&b);
-        return NULL;
-    }
-    if (!sized(&b.src, h * w, kind == 0 ? 1 : (kind == 1 ? 2 : 4), "src") || !sized(&b.ellipses, 5 * k, 8, "ellipses") ||
-        !sized(&b.count, k, 8, "count") || !sized(&b.cap, k, 8, "cap") ||
-        !sized(&b.polarity, k, 8, "polarity") || !sized(&b.valid, k * m, 1, "valid") ||
-        !sized(&b.jac, 5 * k * m, 4, "jac") || !sized(&b.kappa, k * m, 4, "kappa") ||
-        !sized(&b.lower, k * m, 4, "lower") || !sized(&b.upper, k * m, 4, "upper") ||
-        !sized(&b.step, k * m, 4, "step") || !sized(&b.mean, k * m, 4, "mean") ||
-        !sized(&b.mass, k * m, 4, "mass") || (second && !sized(&b.m2, k * m, 4, "m2"))) {
-        release(&b);
-        return NULL;
-    }
-    const double *ell = (const double *)b.ellipses.buf;
-    const int64_t *cnt = (const int64_t *)b.count.buf;
-    const double *capv = (const double *)b.cap.buf, *pol = (const double *)b.polarity.buf;
-    uint8_t *valid = (uint8_t *)b.valid.buf;
-    float *jac = (float *)b.jac.buf, *kap = (float *)b.kappa.buf;
-    float *lower = (float *)b.lower.buf, *upper = (float *)b.upper.buf;
-    float *stepv = (float *)b.step.buf, *mean = (float *)b.mean.buf;
-    float *mass = (float *)b.mass.buf, *m2 = second ? (float *)b.m2.buf : NULL;
-    /* Per-fit scratch rows: the points' angles, the windows, then the samples (sample-major). */
-    const Py_ssize_t mm = m > 0 ? m : 1;
-    float *scratch = (float *)malloc((6 + SAMPLES) * (size_t)mm * sizeof(float));
-    if (scratch == NULL) {
-        release(&b);
-        return PyErr_NoMemory();
-    }
-    float *cps = scratch, *sps = scratch + mm, *su0 = scratch + 2 * mm, *sv0 = scratch + 3 * mm;
-    float *sus = scratch + 4 * mm, *svs = scratch + 5 * mm, *prof = scratch + 6 * mm;
-    const Py_ssize_t itemsize = kind == 0 ? 1 : (kind == 1 ? 2 : 4);
-    Py_BEGIN_ALLOW_THREADS
-    if (k > 0) prefetch_box((const char *)b.src.buf, itemsize, w, h, ell, capv[0]);
-    for (Py_ssize_t f = 0; f < k; f++) {
-        const double *e = ell + 5 * f;
-        if (f + 1 < k) prefetch_box((const char *)b.src.buf, itemsize, w, h, e + 5, capv[f + 1]);
-        const Fit fit = {e[0], e[1], e[2], e[3], e[4], (float)capv[f], (float)pol[f],
-                         (float)(1.0 - lo), (float)(hi - 1.0)};
-        int n = (int)(cnt[f] < 0 ? 0 : (cnt[f] > m ? m : cnt[f]));
-        /* A fit the samples cannot reach safely (not finite, centre off any image, windows past
-         * MAX_REACH) gets padding only: no usable line. */
-        const double reach = fabs(e[2]) + fabs(capv[f]) + 2.0;
-        if (!(isfinite(e[0]) && isfinite(e[1]) && isfinite(e[4]) && fabs(e[0]) < 1e7 &&
-              fabs(e[1]) < 1e7 && e[3] > 0.0 && reach < MAX_REACH - 8.0))
-            n = 0;
-        const Py_ssize_t r = f * m;
-        float *j0 = jac + 5 * r;
-        angles(&fit, n, cps, sps);
-        geometry(&fit, n, cps, sps, kap + r, lower + r, upper + r, stepv + r, j0, j0 + m,
-                 j0 + 2 * m, j0 + 3 * m, j0 + 4 * m, su0, sv0, sus, svs);
-        const int cu = (int)floor(fit.u), cv = (int)floor(fit.v);
-        const float fu = (float)(fit.u - cu), fv = (float)(fit.v - cv);
-        for (int j = 0; j < SAMPLES; j++) {
-            const float frac = (float)j / (SAMPLES - 1);
-            float *out = prof + j * mm;
-            if (kind == 0)
-                sample_u8((const uint8_t *)b.src.buf, (int)w, (int)h, cu, cv, fu, fv, frac, n,
-                          su0, sv0, sus, svs, out);
-            else if (kind == 1)
-                sample_u16((const uint16_t *)b.src.buf, (int)w, (int)h, cu, cv, fu, fv, frac, n,
-                           su0, sv0, sus, svs, out);
-            else
-                sample_f32((const float *)b.src.buf, (int)w, (int)h, cu, cv, fu, fv, frac, n,
-                           su0, sv0, sus, svs, out);
-        }
-        /* Without the second moment, into scratch (its angle rows, used by then). */
-        moments(n, mm, prof, fit.pol, lower + r, stepv + r, mean + r, mass + r,
-                m2 != NULL ? m2 + r : cps);
-        memset(valid + r, 1, (size_t)n);
-        for (Py_ssize_t l = n; l < m; l++) {
-            valid[r + l] = 0;
-            for (int p = 0; p < 5; p++) j0[p * m + l] = 0.0f;
-            kap[r + l] = 0.0f;
-            lower[r + l] = -fit.cap;
-            upper[r + l] = fit.cap;
-            stepv[r + l] = 2.0f * fit.cap / (SAMPLES - 1);
-            mean[r + l] = NAN;
-            mass[r + l] = 0.0f;
-            if (m2 != NULL) m2[r + l] = NAN;
-        }
-    }
-    Py_END_ALLOW_THREADS
-    free(scratch);
-    release(&b);
-    Py_RETURN_NONE;
-}
-
 
 /* ---- After the samples: a full edge's usable lines, their edge positions, the sums. ---- */
 
@@ -464,93 +347,207 @@ SIMD static void edge_lines(Py_ssize_t m, const uint8_t *restrict valid, const f
 #define CHECK(buf, n, size, name) \
     if (ok && !sized(&(buf), (n), (size), (name))) ok = 0
 
-PyDoc_STRVAR(edge_terms_doc,
-"edge_terms(valid, kappa, lower, upper, step, mean, mass, blur, cap, z0, v0, m, good, t,\n"
-"           typical)\n\n"
-"A full edge's lines after their samples (profile_fit._pass, edges printed all round): the\n"
-"usable lines, each one's edge position as the right-hand side t of jac . delta = -t, and each\n"
-"fit's typical step height. Inputs as sample_lines wrote them (k, m), blur, cap and the\n"
-"symmetric window's truncated-normal mass z0 and variance v0 float64 (k,); outputs good uint8\n"
-"(k, m), t float32 (k, m), typical float64 (k,) (NaN where no line was usable).");
-
-static PyObject *edge_terms(PyObject *self, PyObject *args)
+/* A full edge's lines of one fit after their samples (profile_fit._edge_terms, an edge printed
+ * all round, at a known blur): the usable lines (good), each one's edge position as the
+ * right-hand side t of jac . delta = -t (0 where not usable), and the fit's typical step height,
+ * returned (NaN where no line was usable). height: scratch of m floats. */
+static double fit_edge_terms(Py_ssize_t m, const uint8_t *valid, const float *kap,
+                             const float *lower, const float *upper, const float *stepv,
+                             const float *mean, const float *mass, double blur, double cap,
+                             double z0, double v0, uint8_t *good, float *t, float *height)
 {
-    Py_buffer in[7], per[4], og, ot, oty;
-    memset(in, 0, sizeof(in));
-    memset(per, 0, sizeof(per));
-    memset(&og, 0, sizeof(og));
-    memset(&ot, 0, sizeof(ot));
-    memset(&oty, 0, sizeof(oty));
-    Py_ssize_t m;
-    int ok = PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*y*y*nw*w*w*", &in[0], &in[1], &in[2],
-                              &in[3], &in[4], &in[5], &in[6], &per[0], &per[1], &per[2],
-                              &per[3], &m, &og, &ot, &oty);
-    Py_ssize_t k = ok ? per[0].len / (Py_ssize_t)sizeof(double) : 0;
-    static const char *names[] = {"valid", "kappa", "lower", "upper", "step", "mean", "mass"};
-    for (int i = 0; i < 7; i++) CHECK(in[i], k * m, i == 0 ? 1 : 4, names[i]);
-    CHECK(per[1], k, 8, "cap");
-    CHECK(per[2], k, 8, "z0");
-    CHECK(per[3], k, 8, "v0");
-    CHECK(og, k * m, 1, "good");
-    CHECK(ot, k * m, 4, "t");
-    CHECK(oty, k, 8, "typical");
-    float *height = NULL;
-    if (ok) {
-        height = (float *)malloc((size_t)(m > 0 ? m : 1) * sizeof(float));
-        if (height == NULL) {
-            PyErr_NoMemory();
-            ok = 0;
+    const float bf = (float)blur, blur2 = (float)(blur * blur);
+    edge_lines(m, valid, kap, lower, upper, stepv, mean, mass, bf, blur2, (float)cap, (float)z0,
+               (float)v0, good, t, height);
+    double sum = 0.0;
+    Py_ssize_t n = 0;
+    for (Py_ssize_t l = 0; l < m; l++) {
+        if (good[l]) {
+            sum += height[l];
+            n++;
         }
     }
-    if (ok) {
-        const uint8_t *valid = (const uint8_t *)in[0].buf;
-        const float *kap = (const float *)in[1].buf, *lower = (const float *)in[2].buf;
-        const float *upper = (const float *)in[3].buf, *stepv = (const float *)in[4].buf;
-        const float *mean = (const float *)in[5].buf, *mass = (const float *)in[6].buf;
-        const double *blur = (const double *)per[0].buf, *cap = (const double *)per[1].buf;
-        const double *z0 = (const double *)per[2].buf, *v0 = (const double *)per[3].buf;
-        uint8_t *good = (uint8_t *)og.buf;
-        float *t = (float *)ot.buf;
-        double *typical = (double *)oty.buf;
-        Py_BEGIN_ALLOW_THREADS
-        for (Py_ssize_t f = 0; f < k; f++) {
-            const Py_ssize_t r = f * m;
-            const float bf = (float)blur[f], blur2 = (float)(blur[f] * blur[f]);
-            const float cap_t = (float)cap[f], z0f = (float)z0[f], v0f = (float)v0[f];
-            edge_lines(m, valid + r, kap + r, lower + r, upper + r, stepv + r, mean + r,
-                       mass + r, bf, blur2, cap_t, z0f, v0f, good + r, t + r, height);
-            double sum = 0.0;
-            Py_ssize_t n = 0;
-            for (Py_ssize_t l = 0; l < m; l++) {
-                if (good[r + l]) {
-                    sum += height[l];
-                    n++;
-                }
-            }
-            const double typ = n > 0 ? sum / (double)n : NAN;
-            typical[f] = typ;
-            const float tf = (float)typ;
-            /* The step must be this fiducial's edge: its height near the fit's typical one. */
-            for (Py_ssize_t l = 0; l < m; l++) {
-                const Py_ssize_t i = r + l;
-                const int g = good[i] && height[l] > 0.5f * tf && height[l] < 1.5f * tf;
-                good[i] = (uint8_t)g;
-                if (!g) t[i] = 0.0f;
-            }
-        }
-        Py_END_ALLOW_THREADS
+    const double typ = n > 0 ? sum / (double)n : NAN;
+    const float tf = (float)typ;
+    /* The step must be this fiducial's edge: its height near the fit's typical one. */
+    for (Py_ssize_t l = 0; l < m; l++) {
+        const int g = good[l] && height[l] > 0.5f * tf && height[l] < 1.5f * tf;
+        good[l] = (uint8_t)g;
+        if (!g) t[l] = 0.0f;
     }
-    free(height);
-    for (int i = 0; i < 7; i++)
-        if (in[i].obj != NULL) PyBuffer_Release(&in[i]);
-    for (int i = 0; i < 4; i++)
-        if (per[i].obj != NULL) PyBuffer_Release(&per[i]);
-    if (og.obj != NULL) PyBuffer_Release(&og);
-    if (ot.obj != NULL) PyBuffer_Release(&ot);
-    if (oty.obj != NULL) PyBuffer_Release(&oty);
-    if (!ok) return NULL;
+    return typ;
+}
+
+/* One fit's least-squares sums over its good lines: normal (5 x 5) = sum jac jac^T and rhs (5)
+ * = -sum jac t, in double; jf: its jacobian rows (5 x m). */
+static void fit_sums(Py_ssize_t m, const float *jf, const float *tf, const uint8_t *gf,
+                     double *normal, double *rhs)
+{
+    double nn[5][5] = {{0.0}}, rr[5] = {0.0};
+    for (Py_ssize_t l = 0; l < m; l++) {
+        if (!gf[l]) continue;
+        double j[5];
+        for (int p = 0; p < 5; p++) j[p] = jf[p * m + l];
+        for (int p = 0; p < 5; p++) {
+            rr[p] -= j[p] * tf[l];
+            for (int q = p; q < 5; q++) nn[p][q] += j[p] * j[q];
+        }
+    }
+    for (int p = 0; p < 5; p++) {
+        rhs[p] = rr[p];
+        for (int q = 0; q < 5; q++) normal[5 * p + q] = q >= p ? nn[p][q] : nn[q][p];
+    }
+}
+
+PyDoc_STRVAR(sample_lines_doc,
+"sample_lines(src, kind, height, width, ellipses, count, lo, hi, cap, polarity, m,\n"
+"             second_moment, valid, jac, kappa, lower, upper, step, mean, mass, m2)\n\n"
+"The lines of one profile pass on k ellipses and the moments along them, written into the\n"
+"given C-contiguous buffers: src (height, width) of uint8 (kind 0), uint16 (1) or float32 (2)\n"
+"pixels; ellipses float64 (k, 5) as (u, v, a,\n"
+"b, angle); count int64 (k,); cap, polarity float64 (k,); outputs valid uint8 (k, m), jac\n"
+"float32 (k, 5, m), the rest float32 (k, m) (m2 only when second_moment). Padding lines (past a\n"
+"fit's count) get valid 0, zero jac, mean NaN, mass 0 and the full window.\n\n"
+"Optional, for an edge printed all round at a known blur: blur, z0, v0 float64 (k,) (the blur\n"
+"and the symmetric window's truncated-normal mass and variance), then outputs good uint8 (k, m),\n"
+"t float32 (k, m), typical float64 (k,), normal float64 (k, 5, 5), rhs float64 (k, 5): each\n"
+"fit's usable lines, edge positions as the right-hand side t of jac . delta = -t, typical step\n"
+"height (NaN where no line was usable) and least-squares sums (profile_fit._edge_terms, then\n"
+"the sums of profile_fit._solve), while the fit's lines are in cache.");
+
+static PyObject *sample_lines(PyObject *self, PyObject *args)
+{
+    Buffers b;
+    memset(&b, 0, sizeof(b));
+    Py_ssize_t h, w, m;
+    double lo, hi;
+    int second, kind;
+    if (!PyArg_ParseTuple(args, "y*inny*y*ddy*y*npw*w*w*w*w*w*w*w*w*|y*y*y*w*w*w*w*w*", &b.src,
+                          &kind, &h, &w, &b.ellipses, &b.count, &lo, &hi, &b.cap, &b.polarity,
+                          &m, &second, &b.valid, &b.jac, &b.kappa, &b.lower, &b.upper, &b.step,
+                          &b.mean, &b.mass, &b.m2, &b.blur, &b.z0, &b.v0, &b.good, &b.t,
+                          &b.typical, &b.normal, &b.rhs)) {
+        release(&b);
+        return NULL;
+    }
+    Py_ssize_t k = b.cap.len / (Py_ssize_t)sizeof(double);
+    if (h < 1 || w < 1 || h > INT_MAX / (w > 0 ? w : 1) || m < 0) {
+        PyErr_SetString(PyExc_ValueError, "bad image or line count");
+        release(&b);
+        return NULL;
+    }
+    if (kind != 0 && kind != 1 && kind != 2) {
+        PyErr_Format(PyExc_ValueError, "kind must be 0 (uint8), 1 (uint16) or 2 (float32), got %d",
+                     kind);
+        release(&b);
+        return NULL;
+    }
+    if (!sized(&b.src, h * w, kind == 0 ? 1 : (kind == 1 ? 2 : 4), "src") || !sized(&b.ellipses, 5 * k, 8, "ellipses") ||
+        !sized(&b.count, k, 8, "count") || !sized(&b.cap, k, 8, "cap") ||
+        !sized(&b.polarity, k, 8, "polarity") || !sized(&b.valid, k * m, 1, "valid") ||
+        !sized(&b.jac, 5 * k * m, 4, "jac") || !sized(&b.kappa, k * m, 4, "kappa") ||
+        !sized(&b.lower, k * m, 4, "lower") || !sized(&b.upper, k * m, 4, "upper") ||
+        !sized(&b.step, k * m, 4, "step") || !sized(&b.mean, k * m, 4, "mean") ||
+        !sized(&b.mass, k * m, 4, "mass") || (second && !sized(&b.m2, k * m, 4, "m2"))) {
+        release(&b);
+        return NULL;
+    }
+    const int edges = b.blur.obj != NULL;
+    if (edges && (b.rhs.obj == NULL || !sized(&b.blur, k, 8, "blur") || !sized(&b.z0, k, 8, "z0") ||
+                  !sized(&b.v0, k, 8, "v0") || !sized(&b.good, k * m, 1, "good") ||
+                  !sized(&b.t, k * m, 4, "t") || !sized(&b.typical, k, 8, "typical") ||
+                  !sized(&b.normal, 25 * k, 8, "normal") || !sized(&b.rhs, 5 * k, 8, "rhs"))) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_TypeError, "a full edge's terms need all eight buffers");
+        release(&b);
+        return NULL;
+    }
+    const double *ell = (const double *)b.ellipses.buf;
+    const int64_t *cnt = (const int64_t *)b.count.buf;
+    const double *capv = (const double *)b.cap.buf, *pol = (const double *)b.polarity.buf;
+    uint8_t *valid = (uint8_t *)b.valid.buf;
+    float *jac = (float *)b.jac.buf, *kap = (float *)b.kappa.buf;
+    float *lower = (float *)b.lower.buf, *upper = (float *)b.upper.buf;
+    float *stepv = (float *)b.step.buf, *mean = (float *)b.mean.buf;
+    float *mass = (float *)b.mass.buf, *m2 = second ? (float *)b.m2.buf : NULL;
+    /* Per-fit scratch rows: the points' angles, the windows, the samples (sample-major), then
+     * the step heights of a full edge's lines. */
+    const Py_ssize_t mm = m > 0 ? m : 1;
+    float *scratch = (float *)malloc((7 + SAMPLES) * (size_t)mm * sizeof(float));
+    if (scratch == NULL) {
+        release(&b);
+        return PyErr_NoMemory();
+    }
+    float *cps = scratch, *sps = scratch + mm, *su0 = scratch + 2 * mm, *sv0 = scratch + 3 * mm;
+    float *sus = scratch + 4 * mm, *svs = scratch + 5 * mm, *prof = scratch + 6 * mm;
+    float *height = prof + SAMPLES * mm;
+    const Py_ssize_t itemsize = kind == 0 ? 1 : (kind == 1 ? 2 : 4);
+    Py_BEGIN_ALLOW_THREADS
+    if (k > 0) prefetch_box((const char *)b.src.buf, itemsize, w, h, ell, capv[0]);
+    for (Py_ssize_t f = 0; f < k; f++) {
+        const double *e = ell + 5 * f;
+        if (f + 1 < k) prefetch_box((const char *)b.src.buf, itemsize, w, h, e + 5, capv[f + 1]);
+        const Fit fit = {e[0], e[1], e[2], e[3], e[4], (float)capv[f], (float)pol[f],
+                         (float)(1.0 - lo), (float)(hi - 1.0)};
+        int n = (int)(cnt[f] < 0 ? 0 : (cnt[f] > m ? m : cnt[f]));
+        /* A fit the samples cannot reach safely (not finite, centre off any image, windows past
+         * MAX_REACH) gets padding only: no usable line. */
+        const double reach = fabs(e[2]) + fabs(capv[f]) + 2.0;
+        if (!(isfinite(e[0]) && isfinite(e[1]) && isfinite(e[4]) && fabs(e[0]) < 1e7 &&
+              fabs(e[1]) < 1e7 && e[3] > 0.0 && reach < MAX_REACH - 8.0))
+            n = 0;
+        const Py_ssize_t r = f * m;
+        float *j0 = jac + 5 * r;
+        angles(&fit, n, cps, sps);
+        geometry(&fit, n, cps, sps, kap + r, lower + r, upper + r, stepv + r, j0, j0 + m,
+                 j0 + 2 * m, j0 + 3 * m, j0 + 4 * m, su0, sv0, sus, svs);
+        const int cu = (int)floor(fit.u), cv = (int)floor(fit.v);
+        const float fu = (float)(fit.u - cu), fv = (float)(fit.v - cv);
+        for (int j = 0; j < SAMPLES; j++) {
+            const float frac = (float)j / (SAMPLES - 1);
+            float *out = prof + j * mm;
+            if (kind == 0)
+                sample_u8((const uint8_t *)b.src.buf, (int)w, (int)h, cu, cv, fu, fv, frac, n,
+                          su0, sv0, sus, svs, out);
+            else if (kind == 1)
+                sample_u16((const uint16_t *)b.src.buf, (int)w, (int)h, cu, cv, fu, fv, frac, n,
+                           su0, sv0, sus, svs, out);
+            else
+                sample_f32((const float *)b.src.buf, (int)w, (int)h, cu, cv, fu, fv, frac, n,
+                           su0, sv0, sus, svs, out);
+        }
+        /* Without the second moment, into scratch (its angle rows, used by then). */
+        moments(n, mm, prof, fit.pol, lower + r, stepv + r, mean + r, mass + r,
+                m2 != NULL ? m2 + r : cps);
+        memset(valid + r, 1, (size_t)n);
+        for (Py_ssize_t l = n; l < m; l++) {
+            valid[r + l] = 0;
+            for (int p = 0; p < 5; p++) j0[p * m + l] = 0.0f;
+            kap[r + l] = 0.0f;
+            lower[r + l] = -fit.cap;
+            upper[r + l] = fit.cap;
+            stepv[r + l] = 2.0f * fit.cap / (SAMPLES - 1);
+            mean[r + l] = NAN;
+            mass[r + l] = 0.0f;
+            if (m2 != NULL) m2[r + l] = NAN;
+        }
+        if (edges) {
+            /* The fit's lines are still in cache: its edge terms and sums now. */
+            uint8_t *gf = (uint8_t *)b.good.buf + r;
+            float *tf = (float *)b.t.buf + r;
+            ((double *)b.typical.buf)[f] = fit_edge_terms(
+                m, valid + r, kap + r, lower + r, upper + r, stepv + r, mean + r, mass + r,
+                ((const double *)b.blur.buf)[f], capv[f], ((const double *)b.z0.buf)[f],
+                ((const double *)b.v0.buf)[f], gf, tf, height);
+            fit_sums(m, j0, tf, gf, (double *)b.normal.buf + 25 * f, (double *)b.rhs.buf + 5 * f);
+        }
+    }
+    Py_END_ALLOW_THREADS
+    free(scratch);
+    release(&b);
     Py_RETURN_NONE;
 }
+
 
 PyDoc_STRVAR(normal_sums_doc,
 "normal_sums(jac, t, good, m, normal, rhs)\n\n"
@@ -579,26 +576,8 @@ static PyObject *normal_sums(PyObject *self, PyObject *args)
         const uint8_t *good = (const uint8_t *)bg.buf;
         double *normal = (double *)bn.buf, *rhs = (double *)br.buf;
         Py_BEGIN_ALLOW_THREADS
-        for (Py_ssize_t f = 0; f < k; f++) {
-            const float *jf = jac + 5 * f * m;
-            const float *tf = t + f * m;
-            const uint8_t *gf = good + f * m;
-            double nn[5][5] = {{0.0}}, rr[5] = {0.0};
-            for (Py_ssize_t l = 0; l < m; l++) {
-                if (!gf[l]) continue;
-                double j[5];
-                for (int p = 0; p < 5; p++) j[p] = jf[p * m + l];
-                for (int p = 0; p < 5; p++) {
-                    rr[p] -= j[p] * tf[l];
-                    for (int q = p; q < 5; q++) nn[p][q] += j[p] * j[q];
-                }
-            }
-            for (int p = 0; p < 5; p++) {
-                rhs[5 * f + p] = rr[p];
-                for (int q = 0; q < 5; q++)
-                    normal[25 * f + 5 * p + q] = q >= p ? nn[p][q] : nn[q][p];
-            }
-        }
+        for (Py_ssize_t f = 0; f < k; f++)
+            fit_sums(m, jac + 5 * f * m, t + f * m, good + f * m, normal + 25 * f, rhs + 5 * f);
         Py_END_ALLOW_THREADS
     }
     PyBuffer_Release(&bj);
@@ -695,7 +674,6 @@ static PyObject *drop_outliers(PyObject *self, PyObject *args)
 
 static PyMethodDef methods[] = {
     {"sample_lines", sample_lines, METH_VARARGS, sample_lines_doc},
-    {"edge_terms", edge_terms, METH_VARARGS, edge_terms_doc},
     {"normal_sums", normal_sums, METH_VARARGS, normal_sums_doc},
     {"drop_outliers", drop_outliers, METH_VARARGS, drop_outliers_doc},
     {NULL, NULL, 0, NULL},

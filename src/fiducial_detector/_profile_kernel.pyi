@@ -28,23 +28,14 @@ def sample_lines(
     mean: Buffer,
     mass: Buffer,
     m2: Buffer,
-) -> None: ...
-def edge_terms(
-    valid: Buffer,
-    kappa: Buffer,
-    lower: Buffer,
-    upper: Buffer,
-    step: Buffer,
-    mean: Buffer,
-    mass: Buffer,
-    blur: Buffer,
-    cap: Buffer,
-    z0: Buffer,
-    v0: Buffer,
-    m: int,
-    good: Buffer,
-    t: Buffer,
-    typical: Buffer,
+    blur: Buffer = ...,
+    z0: Buffer = ...,
+    v0: Buffer = ...,
+    good: Buffer = ...,
+    t: Buffer = ...,
+    typical: Buffer = ...,
+    normal: Buffer = ...,
+    rhs: Buffer = ...,
 ) -> None: ...
 def normal_sums(
     jac: Buffer, t: Buffer, good: Buffer, m: int, normal: Buffer, rhs: Buffer

@@ -405,11 +405,14 @@ def _pass(
     image noise the covariance is propagated from (None: the residuals')."""
     partial = tie is not None
     k = cur.shape[0]
-    lines, mean, mass, m2 = _sampled_lines(src, cur, n_lines, rho_range, cap, pol, measure_blur)
+    sums = None
     if partial or measure_blur:
+        lines, mean, mass, m2 = _sampled_lines(src, cur, n_lines, rho_range, cap, pol, measure_blur)
         good, t, typical, blur = _edge_terms(lines, mean, mass, m2, blur, cap, partial)
     else:
-        good, t, typical = _full_edge_terms(lines, mean, mass, blur, cap)
+        # An edge printed all round at a known blur: its terms and sums from the kernel too.
+        lines, full = _sampled_full_edge(src, cur, n_lines, rho_range, cap, pol, blur)
+        good, t, typical, sums = full.good, full.t, full.typical, (full.normal, full.rhs)
     symmetric = _symmetric_window(cap, blur)
     prior = None if tie is None else _tie(lines, cur, tie)
     noise_var = None
@@ -425,7 +428,7 @@ def _pass(
             spread = step0 / (typical * share * gain0)
         noise_var = noise_std * noise_std * _line_noise_factor(step0) * spread**2
     delta, cov_f, rms, used = _solve(
-        lines.jac, t, good, prior, noise_var, correlation_factor(spacing)
+        lines.jac, t, good, prior, noise_var, correlation_factor(spacing), sums
     )
     ok = np.all(np.isfinite(delta), axis=1) & (used >= _MIN_LINES)
     theta = np.zeros((k, 5))
@@ -452,7 +455,7 @@ def _edge_terms(
     right-hand side ``t`` of ``jac . delta = -t``, each fit's typical step height, and the blur
     (measured here where ``m2`` is given: the coarse pass). ``partial``: the lines of a partial
     edge (see :func:`refine_by_profiles_sampled`). In numpy: the reference of the kernel's
-    :func:`_full_edge_terms`, and what partial edges and the coarse pass use."""
+    :func:`_sampled_full_edge`, and what partial edges and the coarse pass use."""
     dtype = np.float32
     lower, upper = lines.lower, lines.upper
     box = lines.step**2 / 12.0  # the forward differences' box
@@ -508,39 +511,6 @@ def _edge_terms(
     # distance d_new(origin) = jac . delta = -t.
     t = np.where(good, pos + 0.5 * lines.kappa * blur2, 0.0)
     return good, t, typical, blur
-
-
-def _full_edge_terms(
-    lines: _Lines,
-    mean: NDArray[np.floating[Any]],
-    mass: NDArray[np.floating[Any]],
-    blur: NDArray[np.float64],
-    cap: NDArray[np.float64],
-) -> tuple[NDArray[np.bool_], NDArray[np.float32], NDArray[np.float64]]:
-    """:func:`_edge_terms` of an edge printed all round, at a known blur, from the kernel."""
-    k, m = lines.valid.shape
-    z0, v0 = _symmetric_window(cap, blur)
-    good = np.empty((k, m), dtype=np.uint8)
-    t = np.empty((k, m), dtype=np.float32)
-    typical = np.empty(k)
-    _profile_kernel.edge_terms(
-        lines.valid,
-        lines.kappa,
-        lines.lower,
-        lines.upper,
-        lines.step,
-        mean,
-        mass,
-        np.ascontiguousarray(blur, dtype=np.float64),
-        np.ascontiguousarray(cap, dtype=np.float64),
-        z0,
-        v0,
-        m,
-        good,
-        t,
-        typical,
-    )
-    return good.view(np.bool_), t, typical
 
 
 def _symmetric_window(
@@ -608,6 +578,20 @@ def line_counts(
     return np.clip(np.round(perim / spacing), 16, 4096).astype(np.intp)
 
 
+@dataclass(frozen=True, slots=True)
+class _FullEdge:
+    """What the kernel gives of an edge printed all round, beside its lines (see
+    :func:`_edge_terms`): usable lines, their edge positions ``t`` (right-hand side of
+    ``jac . delta = -t``, 0 where not usable), each fit's typical step height and the
+    least-squares sums over the usable lines (``normal`` (k, 5, 5), ``rhs`` (k, 5))."""
+
+    good: NDArray[np.bool_]
+    t: NDArray[np.float32]
+    typical: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    rhs: NDArray[np.float64]
+
+
 def _sampled_lines(
     src: SampledImage,
     ellipses: NDArray[np.float64],
@@ -628,6 +612,47 @@ def _sampled_lines(
     in SIMD, on the image's own pixels (:func:`sampled_image`), with exact bilinear samples
     (``cv2.remap`` rounds their positions to 1/32 px). Padding lines have no jacobian (zeros)
     and no centroid (NaN)."""
+    lines, mean, mass, m2, _ = _kernel_pass(
+        src, ellipses, count, rho_range, cap, polarity, second_moment, None
+    )
+    return lines, mean, mass, m2
+
+
+def _sampled_full_edge(
+    src: SampledImage,
+    ellipses: NDArray[np.float64],
+    count: NDArray[np.intp],
+    rho_range: tuple[float, float],
+    cap: NDArray[np.float64],
+    polarity: NDArray[np.float64],
+    blur: NDArray[np.float64],
+) -> tuple[_Lines, _FullEdge]:
+    """:func:`_sampled_lines` for an edge printed all round at a known ``blur``, with
+    :func:`_edge_terms` and the least-squares sums taken by the kernel too, each fit's while
+    its lines are in cache."""
+    lines, _, _, _, full = _kernel_pass(src, ellipses, count, rho_range, cap, polarity, False, blur)
+    assert full is not None
+    return lines, full
+
+
+def _kernel_pass(
+    src: SampledImage,
+    ellipses: NDArray[np.float64],
+    count: NDArray[np.intp],
+    rho_range: tuple[float, float],
+    cap: NDArray[np.float64],
+    polarity: NDArray[np.float64],
+    second_moment: bool,
+    blur: NDArray[np.float64] | None,
+) -> tuple[
+    _Lines,
+    NDArray[np.floating[Any]],
+    NDArray[np.floating[Any]],
+    NDArray[np.floating[Any]] | None,
+    _FullEdge | None,
+]:
+    """One call of the kernel's ``sample_lines`` (with a full edge's terms where ``blur`` is
+    given): see :func:`_sampled_lines` and :func:`_sampled_full_edge`."""
     k = ellipses.shape[0]
     m = int(count.max())
     f32 = np.float32
@@ -635,6 +660,21 @@ def _sampled_lines(
     jac = np.empty((k, 5, m), dtype=f32)
     kappa, lower, upper, step, mean, mass = (np.empty((k, m), dtype=f32) for _ in range(6))
     m2 = np.empty((k, m), dtype=f32) if second_moment else np.empty(0, dtype=f32)
+    cap64 = np.ascontiguousarray(cap, dtype=np.float64)
+    full = None
+    edge_args: tuple[NDArray[Any], ...] = ()
+    if blur is not None:
+        blur64 = np.ascontiguousarray(blur, dtype=np.float64)
+        z0, v0 = _symmetric_window(cap64, blur64)
+        full = _FullEdge(
+            np.empty((k, m), dtype=np.bool_),
+            np.empty((k, m), dtype=f32),
+            np.empty(k),
+            np.empty((k, 5, 5)),
+            np.empty((k, 5)),
+        )
+        good = full.good.view(np.uint8)
+        edge_args = (blur64, z0, v0, good, full.t, full.typical, full.normal, full.rhs)
     _profile_kernel.sample_lines(
         src,
         _KINDS[src.dtype],
@@ -644,7 +684,7 @@ def _sampled_lines(
         np.ascontiguousarray(count, dtype=np.int64),
         float(rho_range[0]),
         float(rho_range[1]),
-        np.ascontiguousarray(cap, dtype=np.float64),
+        cap64,
         np.ascontiguousarray(polarity, dtype=np.float64),
         m,
         second_moment,
@@ -657,11 +697,12 @@ def _sampled_lines(
         mean,
         mass,
         m2,
+        *edge_args,
     )
     # The sample positions are not kept: nothing after the moments needs them.
     none = np.empty((k, 0), dtype=f32)
     lines = _Lines(valid.view(np.bool_), none, none, none, none, jac, kappa, lower, upper, step)
-    return lines, mean, mass, (m2 if second_moment else None)
+    return lines, mean, mass, (m2 if second_moment else None), full
 
 
 def _lines(
@@ -898,6 +939,7 @@ def _solve(
     prior: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     noise_var: NDArray[np.float64] | None = None,
     correlation: float = 1.0,
+    sums: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
     """Least squares ``jac . delta = -t`` per fit over the good lines, then once more without
     the lines beyond :data:`_OUTLIER_SDS` robust sds: the step, its covariance (the positions'
@@ -907,15 +949,20 @@ def _solve(
     ``noise_var``: each fit's line variance from the image noise; the covariance then takes it,
     or the residuals' variance less the tolerated misfit (:data:`MISFIT_TOLERANCE_PX`) where
     that is larger; ``correlation``: the lines' :func:`correlation_factor`, which widens the
-    covariance. The returned RMS residual is the residuals' either way."""
+    covariance; ``sums``: the first round's ``normal`` and ``rhs``, where the kernel took them
+    with the lines (:func:`_sampled_full_edge`). The returned RMS residual is the residuals'
+    either way."""
     k, _, m = jac.shape
     # The sums and the residuals' round (kernel), the small systems solved here.
     jac32 = np.ascontiguousarray(jac, dtype=np.float32)
     t32 = np.ascontiguousarray(t, dtype=np.float32)
     use = np.array(good, dtype=np.uint8)  # a copy: the outliers leave it
-    normal = np.empty((k, 5, 5))
-    rhs = np.empty((k, 5))
-    _profile_kernel.normal_sums(jac32, t32, use, m, normal, rhs)
+    if sums is None:
+        normal = np.empty((k, 5, 5))
+        rhs = np.empty((k, 5))
+        _profile_kernel.normal_sums(jac32, t32, use, m, normal, rhs)
+    else:
+        normal, rhs = sums  # taken with the lines (changed in place below)
     # A partial edge's lines are weighed against its prior by their sd: assumed in the first
     # round, the residuals' in the second.
     sd = np.full(k, _TIE_LINE_SD)

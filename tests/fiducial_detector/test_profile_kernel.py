@@ -118,39 +118,43 @@ def test_bad_buffers_are_refused() -> None:
 
 
 def test_full_edge_terms_match_the_numpy_reference() -> None:
-    """The kernel's usable lines, edge positions and typical step heights of a full edge are
-    the numpy reference's (``profile_fit._edge_terms``), to float32 rounding."""
+    """With a known blur the kernel also gives a full edge's usable lines, edge positions,
+    typical step heights and least-squares sums: the numpy reference's
+    (``profile_fit._edge_terms``, then the sums over its usable lines), to float32 rounding;
+    the lines themselves are those of the kernel's plain pass."""
     rng = np.random.default_rng(11)
     scene = render_one("ring", 120, 50, 0.7, 0.01, 4)
     truth = true_ellipse(scene, 0)
     # Fits near the edge (as in the final passes) and some nowhere near one.
-    ellipses = np.vstack(
-        [
-            truth + rng.normal(0.0, 0.05, (40, 5)) * [1, 1, 1, 1, 0.01],
-            _ellipses(rng, 20, scene.image.shape),
-        ]
-    )
+    near = truth + rng.normal(0.0, 0.05, (40, 5)) * [1, 1, 1, 1, 0.01]
+    ellipses = np.vstack([near, _ellipses(rng, 20, scene.image.shape)])
     ellipses[:, 2:4] = np.sort(ellipses[:, 2:4], axis=1)[:, ::-1]
     count = line_counts(ellipses)
     cap = np.full(len(ellipses), 1.8)
     pol = np.ones(len(ellipses))
     blur = rng.uniform(0.6, 0.9, len(ellipses))
-    lines, mean, mass, _ = profile_fit._sampled_lines(
-        sampled_image(scene.image), ellipses, count, RHO, cap, pol, False
-    )
-    good, t, typical = profile_fit._full_edge_terms(lines, mean, mass, blur, cap)
+    src = sampled_image(scene.image)
+    lines, mean, mass, _ = profile_fit._sampled_lines(src, ellipses, count, RHO, cap, pol, False)
+    fused, full = profile_fit._sampled_full_edge(src, ellipses, count, RHO, cap, pol, blur)
+    for name in ("valid", "jac", "kappa", "lower", "upper", "step"):
+        np.testing.assert_array_equal(getattr(fused, name), getattr(lines, name), err_msg=name)
     ref_good, ref_t, ref_typical, _ = profile_fit._edge_terms(
         lines, mean, mass, None, blur, cap, False
     )
     assert ref_good[:40].mean() > 0.5  # the test sees usable lines
     # A line exactly at a limit may flip on rounding; none did on this scene.
-    assert np.mean(good != ref_good) <= 1e-3
-    both = good & ref_good
-    np.testing.assert_allclose(t[both], ref_t[both], atol=2e-5)
-    assert np.all(t[~good] == 0.0)
+    assert np.mean(full.good != ref_good) <= 1e-3
+    both = full.good & ref_good
+    np.testing.assert_allclose(full.t[both], ref_t[both], atol=2e-5)
+    assert np.all(full.t[~full.good] == 0.0)
     fin = np.isfinite(ref_typical)
-    assert np.array_equal(np.isfinite(typical), fin)
-    np.testing.assert_allclose(typical[fin], ref_typical[fin], rtol=1e-5)
+    assert np.array_equal(np.isfinite(full.typical), fin)
+    np.testing.assert_allclose(full.typical[fin], ref_typical[fin], rtol=1e-5)
+    j64, g = lines.jac.astype(np.float64), full.good[:, None, :]
+    want = np.einsum("kpl,kql->kpq", j64 * g, j64)
+    np.testing.assert_allclose(full.normal, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
+    want_rhs = -np.einsum("kpl,kl->kp", j64 * g, full.t.astype(np.float64))
+    np.testing.assert_allclose(full.rhs, want_rhs, atol=1e-9 * np.abs(want_rhs).max())
 
 
 def test_sums_and_outlier_round_match_brute_force() -> None:
