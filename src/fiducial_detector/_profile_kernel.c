@@ -5,7 +5,8 @@
  *                  and for an edge printed all round its usable lines, edge positions and
  *                  least-squares sums (profile_fit._edge_terms, the sums of _solve);
  *   normal_sums,   the least-squares sums over given lines, and the first round's outliers
- *   drop_outliers  out of them (profile_fit._solve keeps the small solves).
+ *   drop_outliers  out of them;
+ *   spd_solve      the fits' 5 x 5 systems, by Cholesky.
  *
  * Why compiled: numpy works a pass as whole (fits x lines x samples) arrays, each a fresh
  * temporary through memory, and cv2.remap needs sample maps built and a float32 copy of the
@@ -672,10 +673,100 @@ static PyObject *drop_outliers(PyObject *self, PyObject *args)
 }
 
 
+PyDoc_STRVAR(spd_solve_doc,
+"spd_solve(lhs, rhs, delta, inv)\n\n"
+"Each fit's least-squares step delta float64 (n, 5) from its symmetric positive-definite\n"
+"system lhs float64 (n, 5, 5), rhs float64 (n, 5), by Cholesky; inv float64 (n, 5, 5) gets\n"
+"lhs's inverse, or is empty (size 0) when not wanted. A system that is not positive definite\n"
+"(singular, or not finite) gives NaN rows.");
+
+/* Cholesky factor L (lower, row-major 5 x 5) of a 5 x 5 matrix; 0 where it is not positive
+ * definite. */
+static int cholesky5(const double *a, double *l)
+{
+    for (int i = 0; i < 25; i++) l[i] = 0.0;
+    for (int j = 0; j < 5; j++) {
+        double d = a[5 * j + j];
+        for (int k = 0; k < j; k++) d -= l[5 * j + k] * l[5 * j + k];
+        if (!(d > 0.0) || !isfinite(d)) return 0;
+        const double ljj = sqrt(d);
+        l[5 * j + j] = ljj;
+        for (int i = j + 1; i < 5; i++) {
+            double v = a[5 * i + j];
+            for (int k = 0; k < j; k++) v -= l[5 * i + k] * l[5 * j + k];
+            l[5 * i + j] = v / ljj;
+        }
+    }
+    return 1;
+}
+
+/* x = (L L^T)^-1 b. */
+static void cholesky5_solve(const double *l, const double *b, double *x)
+{
+    double y[5];
+    for (int i = 0; i < 5; i++) {
+        double v = b[i];
+        for (int k = 0; k < i; k++) v -= l[5 * i + k] * y[k];
+        y[i] = v / l[5 * i + i];
+    }
+    for (int i = 4; i >= 0; i--) {
+        double v = y[i];
+        for (int k = i + 1; k < 5; k++) v -= l[5 * k + i] * x[k];
+        x[i] = v / l[5 * i + i];
+    }
+}
+
+static PyObject *spd_solve(PyObject *self, PyObject *args)
+{
+    Py_buffer bl, br, bd, bi;
+    memset(&bl, 0, sizeof(bl));
+    memset(&br, 0, sizeof(br));
+    memset(&bd, 0, sizeof(bd));
+    memset(&bi, 0, sizeof(bi));
+    int ok = PyArg_ParseTuple(args, "y*y*w*w*", &bl, &br, &bd, &bi);
+    Py_ssize_t n = ok ? br.len / (Py_ssize_t)(5 * sizeof(double)) : 0;
+    CHECK(bl, 25 * n, 8, "lhs");
+    CHECK(br, 5 * n, 8, "rhs");
+    CHECK(bd, 5 * n, 8, "delta");
+    if (ok && bi.len != 0) CHECK(bi, 25 * n, 8, "inv");
+    if (ok) {
+        const double *lhs = (const double *)bl.buf, *rhs = (const double *)br.buf;
+        double *delta = (double *)bd.buf;
+        double *inv = bi.len != 0 ? (double *)bi.buf : NULL;
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t f = 0; f < n; f++) {
+            double l[25];
+            if (!cholesky5(lhs + 25 * f, l)) {
+                for (int p = 0; p < 5; p++) delta[5 * f + p] = NAN;
+                if (inv != NULL)
+                    for (int p = 0; p < 25; p++) inv[25 * f + p] = NAN;
+                continue;
+            }
+            cholesky5_solve(l, rhs + 5 * f, delta + 5 * f);
+            if (inv != NULL) {
+                for (int c = 0; c < 5; c++) {
+                    double e[5] = {0.0}, x[5];
+                    e[c] = 1.0;
+                    cholesky5_solve(l, e, x);
+                    for (int r = 0; r < 5; r++) inv[25 * f + 5 * r + c] = x[r];
+                }
+            }
+        }
+        Py_END_ALLOW_THREADS
+    }
+    PyBuffer_Release(&bl);
+    PyBuffer_Release(&br);
+    PyBuffer_Release(&bd);
+    PyBuffer_Release(&bi);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"sample_lines", sample_lines, METH_VARARGS, sample_lines_doc},
     {"normal_sums", normal_sums, METH_VARARGS, normal_sums_doc},
     {"drop_outliers", drop_outliers, METH_VARARGS, drop_outliers_doc},
+    {"spd_solve", spd_solve, METH_VARARGS, spd_solve_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -47,7 +47,6 @@ from .edge_fit import (
     checked_seeds,
     erf_scaled,
     from_quadratic_form,
-    per_matrix,
     polarity_signs,
     quadratic_form,
 )
@@ -932,6 +931,20 @@ def _tie(
     return info, offset
 
 
+def _spd_solve(
+    lhs: NDArray[np.float64], rhs: NDArray[np.float64], with_inverse: bool
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """Steps (n, 5) of the fits' positive-definite systems ``lhs`` (n, 5, 5), ``rhs`` (n, 5) by
+    Cholesky (kernel), NaN where a system is not positive definite; with ``with_inverse`` also
+    the inverses (n, 5, 5) (NaN there too)."""
+    lhs = np.ascontiguousarray(lhs, dtype=np.float64)
+    rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+    delta = np.empty(rhs.shape)
+    inv = np.empty(lhs.shape) if with_inverse else np.empty(0)
+    _profile_kernel.spd_solve(lhs, rhs, delta, inv)
+    return delta, (inv if with_inverse else None)
+
+
 def _solve(
     jac: NDArray[np.floating[Any]],
     t: NDArray[np.floating[Any]],
@@ -980,18 +993,12 @@ def _solve(
                 scale = np.maximum(sd[solvable], 1e-3)[:, None, None] ** 2
                 lhs = lhs + scale * q
                 right = right - (scale * (q @ o[:, :, None]))[:, :, 0]
-            if prior is None and rnd == 1:
-                # The last round's matrix is the covariance's: its inverse serves the step too
-                # (a batched solve costs two thirds of a batched inverse).
-                inv = per_matrix(np.linalg.inv, (n_solvable, 5, 5), lhs)
-                delta[solvable] = (inv @ right[:, :, None])[:, :, 0]
-            else:
-                delta[solvable] = per_matrix(
-                    lambda a, v: np.linalg.solve(a, v[..., None])[..., 0],
-                    (n_solvable, 5),
-                    lhs,
-                    right,
-                )
+            # The last round's matrix is the covariance's (without a prior): its inverse
+            # comes with the step.
+            want_inv = prior is None and rnd == 1
+            delta[solvable], got = _spd_solve(lhs, right, want_inv)
+            if want_inv:
+                inv = got
         step = np.nan_to_num(delta)
         if rnd == 0:
             # The residuals' RMS; a few bad lines inflate it only a little among a fit's
@@ -1008,7 +1015,7 @@ def _solve(
     cov = np.full((k, 5, 5), np.nan)
     if n_solvable:
         if inv is None:
-            inv = per_matrix(np.linalg.inv, (n_solvable, 5, 5), normal[solvable])
+            _, inv = _spd_solve(normal[solvable], rhs[solvable], True)
         var = sd[solvable] ** 2
         if noise_var is not None:
             var = np.fmax(noise_var[solvable], var - MISFIT_TOLERANCE_PX**2)

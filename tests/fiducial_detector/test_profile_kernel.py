@@ -211,3 +211,27 @@ def test_fits_the_samples_cannot_reach_get_no_lines() -> None:
     assert np.all(lines.valid[[0, 4]]) and not np.any(lines.valid[1:4])
     assert np.all(np.isnan(mean[1:4])) and np.all(mass[1:4] == 0.0)
     np.testing.assert_array_equal(mean[0], mean[4])
+
+
+def test_spd_solve_matches_numpy_and_refuses_singular_systems() -> None:
+    """Steps and inverses of positive-definite 5 x 5 systems as numpy's; a singular system, an
+    indefinite one and one with a NaN give NaN rows, the others are unaffected."""
+    rng = np.random.default_rng(13)
+    a = rng.normal(size=(6, 8, 5))
+    lhs = a.transpose(0, 2, 1) @ a + 1e-3 * np.eye(5)
+    rhs = rng.normal(size=(6, 5))
+    lhs[1] = np.outer(np.arange(1.0, 6.0), np.arange(1.0, 6.0))  # rank one
+    lhs[2] = np.diag([1.0, 1.0, -1.0, 1.0, 1.0])
+    lhs[3, 0, 0] = np.nan
+    delta, inv = np.empty((6, 5)), np.empty((6, 5, 5))
+    _profile_kernel.spd_solve(lhs, rhs, delta, inv)
+    good = [0, 4, 5]
+    np.testing.assert_allclose(
+        delta[good], np.linalg.solve(lhs[good], rhs[good][..., None])[..., 0]
+    )
+    np.testing.assert_allclose(inv[good], np.linalg.inv(lhs[good]), rtol=1e-9, atol=1e-12)
+    assert np.all(np.isnan(delta[1:4])) and np.all(np.isnan(inv[1:4]))
+    _profile_kernel.spd_solve(lhs, rhs, delta, np.empty(0))  # no inverse wanted
+    np.testing.assert_allclose(
+        delta[good], np.linalg.solve(lhs[good], rhs[good][..., None])[..., 0]
+    )
