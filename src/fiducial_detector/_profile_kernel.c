@@ -6,7 +6,8 @@
  *                  least-squares sums (profile_fit._edge_terms, the sums of _solve);
  *   normal_sums,   the least-squares sums over given lines, and the first round's outliers
  *   drop_outliers  out of them;
- *   spd_solve      the fits' 5 x 5 systems, by Cholesky.
+ *   spd_solve      the fits' 5 x 5 systems, by Cholesky;
+ *   sample_points  bilinear samples at given points, as cv2.remap gives them (the code reader).
  *
  * Why compiled: numpy works a pass as whole (fits x lines x samples) arrays, each a fresh
  * temporary through memory, and cv2.remap needs sample maps built and a float32 copy of the
@@ -186,6 +187,74 @@ SIMD static void NAME(const TYPE *restrict img, int w, int h, int cu, int cv, fl
 SAMPLER(sample_u8, uint8_t)
 SAMPLER(sample_u16, uint16_t)
 SAMPLER(sample_f32, float)
+
+/* The compiler does not vectorise gathers of 8 or 16-bit pixels (x86 gathers 32-bit words), so
+ * for those the AVX2 loop is written out: each pixel from the 32-bit word at its byte offset
+ * (clamped to the buffer's last word, the pixel then shifted out of it), masked to its width. */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#include <immintrin.h>
+#define HAVE_AVX2_SAMPLERS 1
+
+__attribute__((target("avx2"))) static inline __m256 gather_narrow(const void *img, __m256i off,
+                                                                   __m256i last, __m256i mask)
+{
+    const __m256i at = _mm256_min_epi32(off, last);
+    const __m256i shift = _mm256_slli_epi32(_mm256_sub_epi32(off, at), 3);
+    const __m256i word = _mm256_i32gather_epi32((const int *)img, at, 1);
+    return _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srlv_epi32(word, shift), mask));
+}
+
+/* sample_u8 / sample_u16 (bytes per pixel: 1 or 2) eight lines at a time; the tail by them. */
+__attribute__((target("avx2"))) static void sample_narrow_avx2(
+    const void *img, int bytes, int w, int h, int cu, int cv, float fu, float fv, float frac,
+    int n, const float *u0, const float *v0, const float *su, const float *sv, float *out)
+{
+    const __m256 vfu = _mm256_set1_ps(fu), vfv = _mm256_set1_ps(fv), vfr = _mm256_set1_ps(frac);
+    const __m256 reach = _mm256_set1_ps(MAX_REACH);
+    const __m256i ireach = _mm256_set1_epi32((int)MAX_REACH);
+    const __m256i vcu = _mm256_set1_epi32(cu), vcv = _mm256_set1_epi32(cv);
+    const __m256i wm = _mm256_set1_epi32(w - 1), hm = _mm256_set1_epi32(h - 1);
+    const __m256i zero = _mm256_setzero_si256(), one = _mm256_set1_epi32(1);
+    const __m256i vw = _mm256_set1_epi32(w), vb = _mm256_set1_epi32(bytes);
+    const __m256i last = _mm256_set1_epi32(w * h * bytes - 4);
+    const __m256i mask = _mm256_set1_epi32(bytes == 1 ? 0xFF : 0xFFFF);
+    int l = 0;
+    for (; l + 8 <= n; l += 8) {
+        const __m256 x = _mm256_add_ps(
+            vfu, _mm256_add_ps(_mm256_loadu_ps(u0 + l), _mm256_mul_ps(_mm256_loadu_ps(su + l), vfr)));
+        const __m256 y = _mm256_add_ps(
+            vfv, _mm256_add_ps(_mm256_loadu_ps(v0 + l), _mm256_mul_ps(_mm256_loadu_ps(sv + l), vfr)));
+        const __m256i xi = _mm256_sub_epi32(_mm256_cvttps_epi32(_mm256_add_ps(x, reach)), ireach);
+        const __m256i yi = _mm256_sub_epi32(_mm256_cvttps_epi32(_mm256_add_ps(y, reach)), ireach);
+        const __m256 ax = _mm256_sub_ps(x, _mm256_cvtepi32_ps(xi));
+        const __m256 ay = _mm256_sub_ps(y, _mm256_cvtepi32_ps(yi));
+        const __m256i gx = _mm256_add_epi32(xi, vcu), gy = _mm256_add_epi32(yi, vcv);
+        const __m256i x0 = _mm256_max_epi32(_mm256_min_epi32(gx, wm), zero);
+        const __m256i x1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(gx, one), wm), zero);
+        const __m256i y0 = _mm256_max_epi32(_mm256_min_epi32(gy, hm), zero);
+        const __m256i y1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(gy, one), hm), zero);
+        const __m256i r0 = _mm256_mullo_epi32(y0, vw), r1 = _mm256_mullo_epi32(y1, vw);
+        const __m256 p00 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x0), vb), last, mask);
+        const __m256 p01 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x1), vb), last, mask);
+        const __m256 p10 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x0), vb), last, mask);
+        const __m256 p11 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x1), vb), last, mask);
+        const __m256 top = _mm256_add_ps(p00, _mm256_mul_ps(ax, _mm256_sub_ps(p01, p00)));
+        const __m256 bot = _mm256_add_ps(p10, _mm256_mul_ps(ax, _mm256_sub_ps(p11, p10)));
+        _mm256_storeu_ps(out + l, _mm256_add_ps(top, _mm256_mul_ps(ay, _mm256_sub_ps(bot, top))));
+    }
+    if (l < n) {
+        if (bytes == 1)
+            sample_u8((const uint8_t *)img, w, h, cu, cv, fu, fv, frac, n - l, u0 + l, v0 + l,
+                      su + l, sv + l, out + l);
+        else
+            sample_u16((const uint16_t *)img, w, h, cu, cv, fu, fv, frac, n - l, u0 + l, v0 + l,
+                       su + l, sv + l, out + l);
+    }
+}
+#endif
+
+/* Set at import: the CPU runs AVX2 (the narrow-pixel samplers above). */
+static int have_avx2 = 0;
 
 /* The moments of the forward differences (profile_fit._centroids): centroid, mass and the
  * second central moment. */
@@ -507,6 +576,12 @@ static PyObject *sample_lines(PyObject *self, PyObject *args)
         for (int j = 0; j < SAMPLES; j++) {
             const float frac = (float)j / (SAMPLES - 1);
             float *out = prof + j * mm;
+#ifdef HAVE_AVX2_SAMPLERS
+            if (have_avx2 && kind != 2 && w * h * (kind + 1) >= 4 && w * h * (kind + 1) < INT_MAX)
+                sample_narrow_avx2(b.src.buf, kind + 1, (int)w, (int)h, cu, cv, fu, fv, frac, n,
+                                   su0, sv0, sus, svs, out);
+            else
+#endif
             if (kind == 0)
                 sample_u8((const uint8_t *)b.src.buf, (int)w, (int)h, cu, cv, fu, fv, frac, n,
                           su0, sv0, sus, svs, out);
@@ -762,11 +837,176 @@ static PyObject *spd_solve(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/* Bilinear samples at given points, pixels outside the image reading 0 (cv2.remap with
+ * INTER_LINEAR and BORDER_CONSTANT 0, which OpenCV 5 computes in float from the exact
+ * positions), integer images' samples rounded to the nearest integer (half to even) as remap
+ * returns them in the image's own type. */
+#define POINT_SAMPLER(NAME, TYPE, ROUND) \
+SIMD static void NAME(const TYPE *restrict img, int w, int h, Py_ssize_t n, \
+                      const float *restrict u, const float *restrict v, float *restrict out) \
+{ \
+    /* All points as if inside (corners clamped into the image): branch-free, in SIMD. Far \
+     * and NaN points are clamped to a pixel or two outside (a NaN fails every comparison). */ \
+    for (Py_ssize_t i = 0; i < n; i++) { \
+        float x = u[i], y = v[i]; \
+        x = x > -2.0f ? x : -2.0f; \
+        x = x < (float)w + 1.0f ? x : (float)w + 1.0f; \
+        y = y > -2.0f ? y : -2.0f; \
+        y = y < (float)h + 1.0f ? y : (float)h + 1.0f; \
+        const int xi = (int)(x + 4.0f) - 4, yi = (int)(y + 4.0f) - 4; \
+        const float ax = x - (float)xi, ay = y - (float)yi; \
+        int x0 = xi < 0 ? 0 : xi, x1 = xi + 1; \
+        x0 = x0 < w - 1 ? x0 : w - 1; \
+        x1 = x1 < 0 ? 0 : x1; \
+        x1 = x1 < w - 1 ? x1 : w - 1; \
+        int y0 = yi < 0 ? 0 : yi, y1 = yi + 1; \
+        y0 = y0 < h - 1 ? y0 : h - 1; \
+        y1 = y1 < 0 ? 0 : y1; \
+        y1 = y1 < h - 1 ? y1 : h - 1; \
+        const float p00 = (float)img[y0 * w + x0], p01 = (float)img[y0 * w + x1]; \
+        const float p10 = (float)img[y1 * w + x0], p11 = (float)img[y1 * w + x1]; \
+        const float top = p00 + ax * (p01 - p00), bot = p10 + ax * (p11 - p10); \
+        out[i] = ROUND(top + ay * (bot - top)); \
+    } \
+    /* Points with a corner outside again, those corners reading 0 (few: a scalar loop). */ \
+    for (Py_ssize_t i = 0; i < n; i++) { \
+        float x = u[i], y = v[i]; \
+        if (x >= 0.0f && y >= 0.0f && x < (float)(w - 1) && y < (float)(h - 1)) continue; \
+        x = x > -2.0f ? x : -2.0f; \
+        x = x < (float)w + 1.0f ? x : (float)w + 1.0f; \
+        y = y > -2.0f ? y : -2.0f; \
+        y = y < (float)h + 1.0f ? y : (float)h + 1.0f; \
+        const int xi = (int)(x + 4.0f) - 4, yi = (int)(y + 4.0f) - 4; \
+        const float ax = x - (float)xi, ay = y - (float)yi; \
+        float p[4]; \
+        for (int c = 0; c < 4; c++) { \
+            const int px = xi + (c & 1), py = yi + (c >> 1); \
+            p[c] = (px >= 0 && px < w && py >= 0 && py < h) ? (float)img[py * w + px] : 0.0f; \
+        } \
+        const float top = p[0] + ax * (p[1] - p[0]), bot = p[2] + ax * (p[3] - p[2]); \
+        out[i] = ROUND(top + ay * (bot - top)); \
+    } \
+}
+
+#define AS_IS(x) (x)
+POINT_SAMPLER(points_u8, uint8_t, rintf)
+POINT_SAMPLER(points_u16, uint16_t, rintf)
+POINT_SAMPLER(points_f32, float, AS_IS)
+
+#ifdef HAVE_AVX2_SAMPLERS
+/* points_u8 / points_u16 (bytes per pixel 1 or 2) eight points at a time (the first loop of
+ * POINT_SAMPLER; its second loop, the points near the border, is points_u8's / points_u16's). */
+__attribute__((target("avx2"))) static void points_narrow_avx2(const void *img, int bytes, int w,
+                                                              int h, Py_ssize_t n,
+                                                              const float *u, const float *v,
+                                                              float *out)
+{
+    const __m256 lo = _mm256_set1_ps(-2.0f);
+    const __m256 hix = _mm256_set1_ps((float)w + 1.0f), hiy = _mm256_set1_ps((float)h + 1.0f);
+    const __m256 four = _mm256_set1_ps(4.0f);
+    const __m256i ifour = _mm256_set1_epi32(4), one = _mm256_set1_epi32(1);
+    const __m256i zero = _mm256_setzero_si256();
+    const __m256i wm = _mm256_set1_epi32(w - 1), hm = _mm256_set1_epi32(h - 1);
+    const __m256i vw = _mm256_set1_epi32(w), vb = _mm256_set1_epi32(bytes);
+    const __m256i last = _mm256_set1_epi32(w * h * bytes - 4);
+    const __m256i mask = _mm256_set1_epi32(bytes == 1 ? 0xFF : 0xFFFF);
+    Py_ssize_t i = 0;
+    for (; i + 8 <= n; i += 8) {
+        /* max with the point first: a NaN point becomes the bound. */
+        const __m256 x = _mm256_min_ps(_mm256_max_ps(_mm256_loadu_ps(u + i), lo), hix);
+        const __m256 y = _mm256_min_ps(_mm256_max_ps(_mm256_loadu_ps(v + i), lo), hiy);
+        const __m256i xi = _mm256_sub_epi32(_mm256_cvttps_epi32(_mm256_add_ps(x, four)), ifour);
+        const __m256i yi = _mm256_sub_epi32(_mm256_cvttps_epi32(_mm256_add_ps(y, four)), ifour);
+        const __m256 ax = _mm256_sub_ps(x, _mm256_cvtepi32_ps(xi));
+        const __m256 ay = _mm256_sub_ps(y, _mm256_cvtepi32_ps(yi));
+        const __m256i x0 = _mm256_max_epi32(_mm256_min_epi32(xi, wm), zero);
+        const __m256i x1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(xi, one), wm), zero);
+        const __m256i y0 = _mm256_max_epi32(_mm256_min_epi32(yi, hm), zero);
+        const __m256i y1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(yi, one), hm), zero);
+        const __m256i r0 = _mm256_mullo_epi32(y0, vw), r1 = _mm256_mullo_epi32(y1, vw);
+        const __m256 p00 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x0), vb), last, mask);
+        const __m256 p01 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x1), vb), last, mask);
+        const __m256 p10 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x0), vb), last, mask);
+        const __m256 p11 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x1), vb), last, mask);
+        const __m256 top = _mm256_add_ps(p00, _mm256_mul_ps(ax, _mm256_sub_ps(p01, p00)));
+        const __m256 bot = _mm256_add_ps(p10, _mm256_mul_ps(ax, _mm256_sub_ps(p11, p10)));
+        const __m256 val = _mm256_add_ps(top, _mm256_mul_ps(ay, _mm256_sub_ps(bot, top)));
+        _mm256_storeu_ps(out + i, _mm256_round_ps(val, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC));
+    }
+    /* The rest, and every point near the border, by the portable loops. */
+    if (i < n) {
+        if (bytes == 1)
+            points_u8((const uint8_t *)img, w, h, n - i, u + i, v + i, out + i);
+        else
+            points_u16((const uint16_t *)img, w, h, n - i, u + i, v + i, out + i);
+    }
+    for (Py_ssize_t j = 0; j < i; j++) {
+        const float x = u[j], y = v[j];
+        if (x >= 0.0f && y >= 0.0f && x < (float)(w - 1) && y < (float)(h - 1)) continue;
+        if (bytes == 1)
+            points_u8((const uint8_t *)img, w, h, 1, u + j, v + j, out + j);
+        else
+            points_u16((const uint16_t *)img, w, h, 1, u + j, v + j, out + j);
+    }
+}
+#endif
+
+PyDoc_STRVAR(sample_points_doc,
+"sample_points(src, kind, height, width, u, v, out)\n\n"
+"Bilinear samples of src (height, width) of uint8 (kind 0), uint16 (1) or float32 (2) pixels\n"
+"at the points (u, v) (float32, n each) into out (float32, n): cv2.remap's INTER_LINEAR with\n"
+"BORDER_CONSTANT 0, integer images' samples rounded to integers as remap gives them.");
+
+static PyObject *sample_points(PyObject *self, PyObject *args)
+{
+    Py_buffer bs, bu, bv, bo;
+    memset(&bs, 0, sizeof(bs));
+    memset(&bu, 0, sizeof(bu));
+    memset(&bv, 0, sizeof(bv));
+    memset(&bo, 0, sizeof(bo));
+    int kind = -1;
+    Py_ssize_t h = 0, w = 0;
+    int ok = PyArg_ParseTuple(args, "y*inny*y*w*", &bs, &kind, &h, &w, &bu, &bv, &bo);
+    if (ok && (h < 1 || w < 1 || h > INT_MAX / w || (kind != 0 && kind != 1 && kind != 2))) {
+        PyErr_SetString(PyExc_ValueError, "bad image size or pixel kind");
+        ok = 0;
+    }
+    const Py_ssize_t n = ok ? bu.len / 4 : 0;
+    CHECK(bs, h * w, kind == 0 ? 1 : (kind == 1 ? 2 : 4), "src");
+    CHECK(bu, n, 4, "u");
+    CHECK(bv, n, 4, "v");
+    CHECK(bo, n, 4, "out");
+    if (ok) {
+        const float *u = (const float *)bu.buf, *v = (const float *)bv.buf;
+        float *out = (float *)bo.buf;
+        Py_BEGIN_ALLOW_THREADS
+#ifdef HAVE_AVX2_SAMPLERS
+        if (have_avx2 && kind != 2 && w * h * (kind + 1) >= 4 && w * h * (kind + 1) < INT_MAX)
+            points_narrow_avx2(bs.buf, kind + 1, (int)w, (int)h, n, u, v, out);
+        else
+#endif
+        if (kind == 0)
+            points_u8((const uint8_t *)bs.buf, (int)w, (int)h, n, u, v, out);
+        else if (kind == 1)
+            points_u16((const uint16_t *)bs.buf, (int)w, (int)h, n, u, v, out);
+        else
+            points_f32((const float *)bs.buf, (int)w, (int)h, n, u, v, out);
+        Py_END_ALLOW_THREADS
+    }
+    PyBuffer_Release(&bs);
+    PyBuffer_Release(&bu);
+    PyBuffer_Release(&bv);
+    PyBuffer_Release(&bo);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"sample_lines", sample_lines, METH_VARARGS, sample_lines_doc},
     {"normal_sums", normal_sums, METH_VARARGS, normal_sums_doc},
     {"drop_outliers", drop_outliers, METH_VARARGS, drop_outliers_doc},
     {"spd_solve", spd_solve, METH_VARARGS, spd_solve_doc},
+    {"sample_points", sample_points, METH_VARARGS, sample_points_doc},
     {NULL, NULL, 0, NULL},
 };
 
@@ -778,5 +1018,9 @@ static struct PyModuleDef module = {
 PyMODINIT_FUNC PyInit__profile_kernel(void)
 {
     init_weights();
+#ifdef HAVE_AVX2_SAMPLERS
+    __builtin_cpu_init();
+    have_avx2 = __builtin_cpu_supports("avx2");
+#endif
     return PyModule_Create(&module);
 }

@@ -46,6 +46,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from . import _profile_kernel
 from .codebook import BITS, rotation_table
 from .design import FiducialDesign
 
@@ -56,6 +57,8 @@ _CORE = 4  # the middle samples of a sector that give its value
 _RAD = np.array([0.25, 0.5, 0.75])
 _REF_ANGLES = 24
 _MAX_REMAP_ROWS = 30000
+#: Pixel types the kernel's point sampler reads (its ``kind`` codes).
+_KERNEL_KINDS = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1, np.dtype(np.float32): 2}
 #: Default smallest accepted contrast (white - black level), fraction of full scale.
 DEFAULT_MIN_CONTRAST = 0.06
 
@@ -293,10 +296,11 @@ def _sample(
     ``near``: the candidates (rows) whose points may have (:func:`_near_border`), the only ones
     tested point by point.
 
-    OpenCV interpolates in the image's own type (an 8-bit image gives 8-bit samples, ample for
-    telling black from white), so the full frame is never converted to float. The samples come
-    back as float32: integer samples and the sums of up to 12 of them stay exact in float32,
-    so the rest of the reader works on exact integers for integer images.
+    Interpolated as ``cv2.remap`` does it, in the image's own type (an 8-bit image gives 8-bit
+    samples, ample for telling black from white), so the full frame is never converted to
+    float: by the profile fit's kernel for 8/16-bit and float32 images (OpenCV otherwise). The
+    samples come back as float32: integer samples and the sums of up to 12 of them stay exact
+    in float32, so the rest of the reader works on exact integers for integer images.
 
     Returns
     -------
@@ -307,17 +311,31 @@ def _sample(
     """
     n, k = u.shape
     out = np.empty((n, k), dtype=np.float32)
-    for start in range(0, n, _MAX_REMAP_ROWS):
-        stop = start + _MAX_REMAP_ROWS
-        got = cv2.remap(
+    kind = _KERNEL_KINDS.get(image.dtype)
+    if kind is not None and image.ndim == 2 and image.flags.c_contiguous and min(image.shape) > 1:
+        # The profile fit's kernel samples as remap does (OpenCV 5: float bilinear from the
+        # exact position, rounded to the image's integers), in SIMD on 8/16-bit pixels.
+        _profile_kernel.sample_points(
             image,
-            u[start:stop],
-            v[start:stop],
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=0,
+            kind,
+            image.shape[0],
+            image.shape[1],
+            np.ascontiguousarray(u, dtype=np.float32),
+            np.ascontiguousarray(v, dtype=np.float32),
+            out,
         )
-        out[start:stop] = got
+    else:
+        for start in range(0, n, _MAX_REMAP_ROWS):
+            stop = start + _MAX_REMAP_ROWS
+            got = cv2.remap(
+                image,
+                u[start:stop],
+                v[start:stop],
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0,
+            )
+            out[start:stop] = got
     h, w = image.shape
     outside = np.zeros((n, k), dtype=bool)
     if near.any():
