@@ -4,9 +4,8 @@
  *                  (profile_fit._lines then profile_fit._centroids, their numpy reference),
  *                  and for an edge printed all round its usable lines, edge positions and
  *                  least-squares sums (profile_fit._edge_terms, the sums of _solve);
- *   normal_sums,   the least-squares sums over given lines, and the first round's outliers
- *   drop_outliers  out of them;
- *   spd_solve      the fits' 5 x 5 systems, by Cholesky;
+ *   normal_sums    the least-squares sums over given lines;
+ *   solve_rounds   the fits' two least-squares rounds (Cholesky), the outliers out between;
  *   sample_points  bilinear samples at given points, as cv2.remap gives them (the code reader).
  *
  * Why compiled: numpy works a pass as whole (fits x lines x samples) arrays, each a fresh
@@ -665,95 +664,48 @@ static PyObject *normal_sums(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
-PyDoc_STRVAR(drop_outliers_doc,
-"drop_outliers(jac, t, use, step, limit, m, normal, rhs, sd, tt, used)\n\n"
-"The first least-squares round's residuals t + jac . step over each fit's used lines (step\n"
-"float64 (k, 5), zeros where the fit was not solvable): their RMS sd (over used - 5, at least\n"
-"1), then the lines beyond limit sds taken out of use (uint8 (k, m), in place) and out of the\n"
-"sums normal and rhs (in place); tt float64 (k,) = sum t^2 and used int64 (k,) over the lines\n"
-"left.");
-
-static PyObject *drop_outliers(PyObject *self, PyObject *args)
+/* One fit's first-round residuals t + jac . step over its used lines: returns their RMS (over
+ * used - 5, at least 1); the lines beyond limit RMSs leave use and the sums normal (5 x 5) and
+ * rhs (5); tt = sum t^2 and used over the lines left. */
+static double fit_drop_outliers(Py_ssize_t m, const float *jf, const float *tf, uint8_t *uf,
+                                const double *step, double limit, double *normal, double *rhs,
+                                double *tt_out, int64_t *used_out)
 {
-    Py_buffer bj, bt, bu, bs, bn, br, bsd, btt, bused;
-    Py_buffer *all[] = {&bj, &bt, &bu, &bs, &bn, &br, &bsd, &btt, &bused};
-    for (size_t i = 0; i < sizeof(all) / sizeof(all[0]); i++) memset(all[i], 0, sizeof(Py_buffer));
-    Py_ssize_t m;
-    double limit;
-    int ok = PyArg_ParseTuple(args, "y*y*w*y*dnw*w*w*w*w*", &bj, &bt, &bu, &bs, &limit, &m, &bn,
-                              &br, &bsd, &btt, &bused);
-    Py_ssize_t k = ok ? bs.len / (Py_ssize_t)(5 * sizeof(double)) : 0;
-    CHECK(bj, 5 * k * m, 4, "jac");
-    CHECK(bt, k * m, 4, "t");
-    CHECK(bu, k * m, 1, "use");
-    CHECK(bn, 25 * k, 8, "normal");
-    CHECK(br, 5 * k, 8, "rhs");
-    CHECK(bsd, k, 8, "sd");
-    CHECK(btt, k, 8, "tt");
-    CHECK(bused, k, 8, "used");
-    if (ok) {
-        const float *jac = (const float *)bj.buf, *t = (const float *)bt.buf;
-        uint8_t *use = (uint8_t *)bu.buf;
-        const double *step = (const double *)bs.buf;
-        double *normal = (double *)bn.buf, *rhs = (double *)br.buf;
-        double *sdv = (double *)bsd.buf, *ttv = (double *)btt.buf;
-        int64_t *usedv = (int64_t *)bused.buf;
-        Py_BEGIN_ALLOW_THREADS
-        for (Py_ssize_t f = 0; f < k; f++) {
-            const float *jf = jac + 5 * f * m;
-            const float *tf = t + f * m;
-            uint8_t *uf = use + f * m;
-            const double *sf = step + 5 * f;
-            double ss = 0.0;
-            Py_ssize_t n = 0;
-            for (Py_ssize_t l = 0; l < m; l++) {
-                if (!uf[l]) continue;
-                double r = tf[l];
-                for (int p = 0; p < 5; p++) r += sf[p] * jf[p * m + l];
-                ss += r * r;
-                n++;
-            }
-            const double sd = sqrt(ss / (double)(n - 5 > 1 ? n - 5 : 1));
-            sdv[f] = sd;
-            double tt = 0.0;
-            int64_t kept = 0;
-            for (Py_ssize_t l = 0; l < m; l++) {
-                if (!uf[l]) continue;
-                double j[5], r = tf[l];
-                for (int p = 0; p < 5; p++) {
-                    j[p] = jf[p * m + l];
-                    r += sf[p] * j[p];
-                }
-                if (fabs(r) <= limit * sd) {
-                    tt += (double)tf[l] * tf[l];
-                    kept++;
-                    continue;
-                }
-                /* A few bad lines come out of the sums (cheaper than summing all again). */
-                uf[l] = 0;
-                for (int p = 0; p < 5; p++) {
-                    rhs[5 * f + p] += j[p] * tf[l];
-                    for (int q = 0; q < 5; q++) normal[25 * f + 5 * p + q] -= j[p] * j[q];
-                }
-            }
-            ttv[f] = tt;
-            usedv[f] = kept;
-        }
-        Py_END_ALLOW_THREADS
+    double ss = 0.0;
+    Py_ssize_t n = 0;
+    for (Py_ssize_t l = 0; l < m; l++) {
+        if (!uf[l]) continue;
+        double r = tf[l];
+        for (int p = 0; p < 5; p++) r += step[p] * jf[p * m + l];
+        ss += r * r;
+        n++;
     }
-    for (size_t i = 0; i < sizeof(all) / sizeof(all[0]); i++)
-        if (all[i]->obj != NULL) PyBuffer_Release(all[i]);
-    if (!ok) return NULL;
-    Py_RETURN_NONE;
+    const double sd = sqrt(ss / (double)(n - 5 > 1 ? n - 5 : 1));
+    double tt = 0.0;
+    int64_t kept = 0;
+    for (Py_ssize_t l = 0; l < m; l++) {
+        if (!uf[l]) continue;
+        double j[5], r = tf[l];
+        for (int p = 0; p < 5; p++) {
+            j[p] = jf[p * m + l];
+            r += step[p] * j[p];
+        }
+        if (fabs(r) <= limit * sd) {
+            tt += (double)tf[l] * tf[l];
+            kept++;
+            continue;
+        }
+        /* A few bad lines come out of the sums (cheaper than summing all again). */
+        uf[l] = 0;
+        for (int p = 0; p < 5; p++) {
+            rhs[p] += j[p] * tf[l];
+            for (int q = 0; q < 5; q++) normal[5 * p + q] -= j[p] * j[q];
+        }
+    }
+    *tt_out = tt;
+    *used_out = kept;
+    return sd;
 }
-
-
-PyDoc_STRVAR(spd_solve_doc,
-"spd_solve(lhs, rhs, delta, inv)\n\n"
-"Each fit's least-squares step delta float64 (n, 5) from its symmetric positive-definite\n"
-"system lhs float64 (n, 5, 5), rhs float64 (n, 5), by Cholesky; inv float64 (n, 5, 5) gets\n"
-"lhs's inverse, or is empty (size 0) when not wanted. A system that is not positive definite\n"
-"(singular, or not finite) gives NaN rows.");
 
 /* Cholesky factor L (lower, row-major 5 x 5) of a 5 x 5 matrix; 0 where it is not positive
  * definite. */
@@ -791,48 +743,124 @@ static void cholesky5_solve(const double *l, const double *b, double *x)
     }
 }
 
-static PyObject *spd_solve(PyObject *self, PyObject *args)
+/* lhs = normal + scale q, right = rhs - scale q o (a partial edge's prior, where q is given). */
+static void with_prior(const double *normal, const double *rhs, const double *q, const double *o,
+                       double scale, double *lhs, double *right)
 {
-    Py_buffer bl, br, bd, bi;
-    memset(&bl, 0, sizeof(bl));
-    memset(&br, 0, sizeof(br));
-    memset(&bd, 0, sizeof(bd));
-    memset(&bi, 0, sizeof(bi));
-    int ok = PyArg_ParseTuple(args, "y*y*w*w*", &bl, &br, &bd, &bi);
-    Py_ssize_t n = ok ? br.len / (Py_ssize_t)(5 * sizeof(double)) : 0;
-    CHECK(bl, 25 * n, 8, "lhs");
-    CHECK(br, 5 * n, 8, "rhs");
-    CHECK(bd, 5 * n, 8, "delta");
-    if (ok && bi.len != 0) CHECK(bi, 25 * n, 8, "inv");
+    for (int p = 0; p < 5; p++) {
+        double qo = 0.0;
+        for (int c = 0; c < 5; c++) {
+            lhs[5 * p + c] = normal[5 * p + c] + (q != NULL ? scale * q[5 * p + c] : 0.0);
+            if (q != NULL) qo += q[5 * p + c] * o[c];
+        }
+        right[p] = rhs[p] - (q != NULL ? scale * qo : 0.0);
+    }
+}
+
+/* x = lhs^-1 right by Cholesky; NaN where lhs is not positive definite. Returns 1 if solved. */
+static int solve5(const double *lhs, const double *right, double *x, double *l)
+{
+    if (!cholesky5(lhs, l)) {
+        for (int p = 0; p < 5; p++) x[p] = NAN;
+        return 0;
+    }
+    cholesky5_solve(l, right, x);
+    return 1;
+}
+
+PyDoc_STRVAR(solve_rounds_doc,
+"solve_rounds(jac, t, use, m, normal, rhs, q, o, tie_sd, min_lines, limit, delta, inv, sd,\n"
+"             used)\n\n"
+"Each fit's least squares jac . delta = -t over its used lines (profile_fit._solve), in two\n"
+"rounds: a step from the sums normal (k, 5, 5) and rhs (k, 5) (Cholesky), then the lines\n"
+"whose residual exceeds limit RMSs out of use (uint8 (k, m)) and the sums (both in place),\n"
+"and the step again. q (k, 5, 5) and o (k, 5), or both empty: a partial edge's prior, the step\n"
+"then also paying (o + delta)^T q (o + delta) weighed by the lines' sd (tie_sd assumed in the\n"
+"first round, the residuals' in the second). A fit with fewer than min_lines used lines, or\n"
+"whose system is not positive definite, gets NaN. Outputs: delta float64 (k, 5); inv (k, 5, 5)\n"
+"the inverse of the final sums without the prior (the covariance's matrix); sd (k,) the RMS\n"
+"residual of the final step; used int64 (k,) (in: the used lines' count; out: after the\n"
+"outliers).");
+
+static PyObject *solve_rounds(PyObject *self, PyObject *args)
+{
+    Py_buffer bj, bt, bu, bn, br, bq, bo, bd, bi, bsd, bused;
+    Py_buffer *all[] = {&bj, &bt, &bu, &bn, &br, &bq, &bo, &bd, &bi, &bsd, &bused};
+    for (size_t i = 0; i < sizeof(all) / sizeof(all[0]); i++) memset(all[i], 0, sizeof(Py_buffer));
+    Py_ssize_t m, min_lines;
+    double tie_sd, limit;
+    int ok = PyArg_ParseTuple(args, "y*y*w*nw*w*y*y*dndw*w*w*w*", &bj, &bt, &bu, &m, &bn, &br,
+                              &bq, &bo, &tie_sd, &min_lines, &limit, &bd, &bi, &bsd, &bused);
+    Py_ssize_t k = ok ? bd.len / (Py_ssize_t)(5 * sizeof(double)) : 0;
+    CHECK(bj, 5 * k * m, 4, "jac");
+    CHECK(bt, k * m, 4, "t");
+    CHECK(bu, k * m, 1, "use");
+    CHECK(bn, 25 * k, 8, "normal");
+    CHECK(br, 5 * k, 8, "rhs");
+    const int prior = ok && bq.len != 0;
+    if (prior) {
+        CHECK(bq, 25 * k, 8, "q");
+        CHECK(bo, 5 * k, 8, "o");
+    }
+    CHECK(bi, 25 * k, 8, "inv");
+    CHECK(bsd, k, 8, "sd");
+    CHECK(bused, k, 8, "used");
     if (ok) {
-        const double *lhs = (const double *)bl.buf, *rhs = (const double *)br.buf;
-        double *delta = (double *)bd.buf;
-        double *inv = bi.len != 0 ? (double *)bi.buf : NULL;
+        const float *jac = (const float *)bj.buf, *t = (const float *)bt.buf;
+        uint8_t *use = (uint8_t *)bu.buf;
+        double *normal = (double *)bn.buf, *rhs = (double *)br.buf;
+        const double *qv = prior ? (const double *)bq.buf : NULL;
+        const double *ov = prior ? (const double *)bo.buf : NULL;
+        double *delta = (double *)bd.buf, *inv = (double *)bi.buf, *sdv = (double *)bsd.buf;
+        int64_t *usedv = (int64_t *)bused.buf;
         Py_BEGIN_ALLOW_THREADS
-        for (Py_ssize_t f = 0; f < n; f++) {
-            double l[25];
-            if (!cholesky5(lhs + 25 * f, l)) {
-                for (int p = 0; p < 5; p++) delta[5 * f + p] = NAN;
-                if (inv != NULL)
-                    for (int p = 0; p < 25; p++) inv[25 * f + p] = NAN;
-                continue;
+        for (Py_ssize_t f = 0; f < k; f++) {
+            double *nf = normal + 25 * f, *rf = rhs + 5 * f, *df = delta + 5 * f;
+            const double *qf = qv != NULL ? qv + 25 * f : NULL;
+            const double *of = ov != NULL ? ov + 5 * f : NULL;
+            double lhs[25], right[5], l[25], step[5], tt;
+            /* Round one: a step, then the outliers out. */
+            for (int p = 0; p < 5; p++) step[p] = 0.0;
+            if (usedv[f] >= min_lines) {
+                const double s0 = tie_sd > 1e-3 ? tie_sd : 1e-3;
+                with_prior(nf, rf, qf, of, s0 * s0, lhs, right);
+                if (solve5(lhs, right, step, l) == 0)
+                    for (int p = 0; p < 5; p++) step[p] = 0.0;
             }
-            cholesky5_solve(l, rhs + 5 * f, delta + 5 * f);
-            if (inv != NULL) {
-                for (int c = 0; c < 5; c++) {
-                    double e[5] = {0.0}, x[5];
-                    e[c] = 1.0;
-                    cholesky5_solve(l, e, x);
-                    for (int r = 0; r < 5; r++) inv[25 * f + 5 * r + c] = x[r];
+            const double sd0 = fit_drop_outliers(m, jac + 5 * f * m, t + f * m, use + f * m,
+                                                 step, limit, nf, rf, &tt, &usedv[f]);
+            /* Round two, on the lines left. */
+            for (int p = 0; p < 5; p++) df[p] = NAN;
+            for (int p = 0; p < 25; p++) inv[25 * f + p] = NAN;
+            if (usedv[f] >= min_lines) {
+                const double s1 = sd0 > 1e-3 ? sd0 : 1e-3;
+                with_prior(nf, rf, qf, of, s1 * s1, lhs, right);
+                solve5(lhs, right, df, l);
+                if (cholesky5(nf, l)) {
+                    for (int c = 0; c < 5; c++) {
+                        double e[5] = {0.0}, x[5];
+                        e[c] = 1.0;
+                        cholesky5_solve(l, e, x);
+                        for (int r = 0; r < 5; r++) inv[25 * f + 5 * r + c] = x[r];
+                    }
                 }
             }
+            /* The residuals' sum of squares from the sums: t.t - 2 delta.r + delta^T N delta
+             * over the lines used (r = -J t), no second pass over the lines. */
+            double ss = tt;
+            for (int p = 0; p < 5; p++) {
+                const double sp = isfinite(df[p]) ? df[p] : 0.0;
+                ss -= 2.0 * sp * rf[p];
+                for (int c = 0; c < 5; c++)
+                    ss += sp * nf[5 * p + c] * (isfinite(df[c]) ? df[c] : 0.0);
+            }
+            const int64_t dof = usedv[f] - 5 > 1 ? usedv[f] - 5 : 1;
+            sdv[f] = sqrt((ss > 0.0 ? ss : 0.0) / (double)dof);
         }
         Py_END_ALLOW_THREADS
     }
-    PyBuffer_Release(&bl);
-    PyBuffer_Release(&br);
-    PyBuffer_Release(&bd);
-    PyBuffer_Release(&bi);
+    for (size_t i = 0; i < sizeof(all) / sizeof(all[0]); i++)
+        if (all[i]->obj != NULL) PyBuffer_Release(all[i]);
     if (!ok) return NULL;
     Py_RETURN_NONE;
 }
@@ -1004,8 +1032,7 @@ static PyObject *sample_points(PyObject *self, PyObject *args)
 static PyMethodDef methods[] = {
     {"sample_lines", sample_lines, METH_VARARGS, sample_lines_doc},
     {"normal_sums", normal_sums, METH_VARARGS, normal_sums_doc},
-    {"drop_outliers", drop_outliers, METH_VARARGS, drop_outliers_doc},
-    {"spd_solve", spd_solve, METH_VARARGS, spd_solve_doc},
+    {"solve_rounds", solve_rounds, METH_VARARGS, solve_rounds_doc},
     {"sample_points", sample_points, METH_VARARGS, sample_points_doc},
     {NULL, NULL, 0, NULL},
 };

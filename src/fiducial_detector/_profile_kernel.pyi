@@ -40,20 +40,23 @@ def sample_lines(
 def normal_sums(
     jac: Buffer, t: Buffer, good: Buffer, m: int, normal: Buffer, rhs: Buffer
 ) -> None: ...
-def drop_outliers(
+def solve_rounds(
     jac: Buffer,
     t: Buffer,
     use: Buffer,
-    step: Buffer,
-    limit: float,
     m: int,
     normal: Buffer,
     rhs: Buffer,
+    q: Buffer,
+    o: Buffer,
+    tie_sd: float,
+    min_lines: int,
+    limit: float,
+    delta: Buffer,
+    inv: Buffer,
     sd: Buffer,
-    tt: Buffer,
     used: Buffer,
 ) -> None: ...
-def spd_solve(lhs: Buffer, rhs: Buffer, delta: Buffer, inv: Buffer) -> None: ...
 def sample_points(
     src: Buffer, kind: int, height: int, width: int, u: Buffer, v: Buffer, out: Buffer
 ) -> None: ...

@@ -931,20 +931,6 @@ def _tie(
     return info, offset
 
 
-def _spd_solve(
-    lhs: NDArray[np.float64], rhs: NDArray[np.float64], with_inverse: bool
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """Steps (n, 5) of the fits' positive-definite systems ``lhs`` (n, 5, 5), ``rhs`` (n, 5) by
-    Cholesky (kernel), NaN where a system is not positive definite; with ``with_inverse`` also
-    the inverses (n, 5, 5) (NaN there too)."""
-    lhs = np.ascontiguousarray(lhs, dtype=np.float64)
-    rhs = np.ascontiguousarray(rhs, dtype=np.float64)
-    delta = np.empty(rhs.shape)
-    inv = np.empty(lhs.shape) if with_inverse else np.empty(0)
-    _profile_kernel.spd_solve(lhs, rhs, delta, inv)
-    return delta, (inv if with_inverse else None)
-
-
 def _solve(
     jac: NDArray[np.floating[Any]],
     t: NDArray[np.floating[Any]],
@@ -966,7 +952,6 @@ def _solve(
     with the lines (:func:`_sampled_full_edge`). The returned RMS residual is the residuals'
     either way."""
     k, _, m = jac.shape
-    # The sums and the residuals' round (kernel), the small systems solved here.
     jac32 = np.ascontiguousarray(jac, dtype=np.float32)
     t32 = np.ascontiguousarray(t, dtype=np.float32)
     use = np.array(good, dtype=np.uint8)  # a copy: the outliers leave it
@@ -976,48 +961,41 @@ def _solve(
         _profile_kernel.normal_sums(jac32, t32, use, m, normal, rhs)
     else:
         normal, rhs = sums  # taken with the lines (changed in place below)
-    # A partial edge's lines are weighed against its prior by their sd: assumed in the first
-    # round, the residuals' in the second.
-    sd = np.full(k, _TIE_LINE_SD)
-    tt = np.empty(k)
+    # Both rounds in the kernel (a partial edge's lines are weighed against its prior by their
+    # sd: assumed in the first round, the residuals' in the second).
     used = use.sum(axis=1, dtype=np.int64)
-    inv: NDArray[np.float64] | None = None
-    for rnd in range(2):
-        solvable = used >= _MIN_LINES
-        n_solvable = int(solvable.sum())
-        delta = np.full((k, 5), np.nan)
-        if n_solvable:
-            lhs, right = normal[solvable], rhs[solvable]
-            if prior is not None:
-                q, o = prior[0][solvable], prior[1][solvable]
-                scale = np.maximum(sd[solvable], 1e-3)[:, None, None] ** 2
-                lhs = lhs + scale * q
-                right = right - (scale * (q @ o[:, :, None]))[:, :, 0]
-            # The last round's matrix is the covariance's (without a prior): its inverse
-            # comes with the step.
-            want_inv = prior is None and rnd == 1
-            delta[solvable], got = _spd_solve(lhs, right, want_inv)
-            if want_inv:
-                inv = got
-        step = np.nan_to_num(delta)
-        if rnd == 0:
-            # The residuals' RMS; a few bad lines inflate it only a little among a fit's
-            # hundred or more. Lines beyond _OUTLIER_SDS of it come out of the sums.
-            _profile_kernel.drop_outliers(
-                jac32, t32, use, step, _OUTLIER_SDS, m, normal, rhs, sd, tt, used
-            )
-        else:
-            # The residuals' sum of squares from the sums already formed: t.t - 2 delta.r +
-            # delta^T N delta over the lines used (r = -J t), no second pass over the lines.
-            ss = tt - 2.0 * np.einsum("ki,ki->k", step, rhs)
-            ss += np.einsum("ki,kij,kj->k", step, normal, step)
-            sd = np.sqrt(np.maximum(ss, 0.0) / np.maximum(used - 5, 1))
-    cov = np.full((k, 5, 5), np.nan)
-    if n_solvable:
-        if inv is None:
-            _, inv = _spd_solve(normal[solvable], rhs[solvable], True)
-        var = sd[solvable] ** 2
-        if noise_var is not None:
-            var = np.fmax(noise_var[solvable], var - MISFIT_TOLERANCE_PX**2)
-        cov[solvable] = inv * (correlation**2 * var)[:, None, None]
+    empty = np.empty(0)
+    q, o = (
+        (empty, empty)
+        if prior is None
+        else (
+            np.ascontiguousarray(prior[0], dtype=np.float64),
+            np.ascontiguousarray(prior[1], dtype=np.float64),
+        )
+    )
+    delta = np.empty((k, 5))
+    inv = np.empty((k, 5, 5))
+    sd = np.empty(k)
+    _profile_kernel.solve_rounds(
+        jac32,
+        t32,
+        use,
+        m,
+        normal,
+        rhs,
+        q,
+        o,
+        _TIE_LINE_SD,
+        _MIN_LINES,
+        _OUTLIER_SDS,
+        delta,
+        inv,
+        sd,
+        used,
+    )
+    var = sd**2
+    if noise_var is not None:
+        var = np.fmax(noise_var, var - MISFIT_TOLERANCE_PX**2)
+    cov = inv * (correlation**2 * var)[:, None, None]
+    cov[used < _MIN_LINES] = np.nan
     return delta, cov, sd, used.astype(np.intp)

@@ -165,37 +165,80 @@ def test_full_edge_terms_match_the_numpy_reference() -> None:
     np.testing.assert_allclose(full.rhs, want_rhs, atol=1e-9 * np.abs(want_rhs).max())
 
 
-def test_sums_and_outlier_round_match_brute_force() -> None:
-    """``normal_sums`` and ``drop_outliers`` against numpy on random lines: the sums over the
-    good lines, the residuals' RMS, lines beyond the limit left out of use and of the sums."""
+def _brute_rounds(jac, t, good, q, o, tie_sd, min_lines, limit):  # type: ignore[no-untyped-def]
+    """The two least-squares rounds of ``profile_fit._solve`` written out with numpy, fit by
+    fit."""
+    k = t.shape[0]
+    j64, t64 = jac.astype(np.float64), t.astype(np.float64)
+    delta, inv, sd = np.full((k, 5), np.nan), np.full((k, 5, 5), np.nan), np.empty(k)
+    use = good.copy()
+
+    def sums(f, mask):  # type: ignore[no-untyped-def]
+        jm = j64[f][:, mask]
+        return jm @ jm.T, -jm @ t64[f][mask]
+
+    def solve(f, n, r, s):  # type: ignore[no-untyped-def]
+        if q is None:
+            return np.linalg.solve(n, r)
+        return np.linalg.solve(n + s * s * q[f], r - s * s * q[f] @ o[f])
+
+    for f in range(k):
+        step = np.zeros(5)
+        if use[f].sum() >= min_lines:
+            step = solve(f, *sums(f, use[f]), max(tie_sd, 1e-3))
+        resid = t64[f] + step @ j64[f]
+        n = use[f].sum()
+        sd0 = np.sqrt(np.sum(resid[use[f]] ** 2) / max(n - 5, 1))
+        use[f] &= np.abs(resid) <= limit * sd0
+        n = use[f].sum()
+        normal, rhs = sums(f, use[f])
+        final = np.zeros(5)
+        if n >= min_lines:
+            delta[f] = final = solve(f, normal, rhs, max(sd0, 1e-3))
+            inv[f] = np.linalg.inv(normal)
+        resid = t64[f] + final @ j64[f]
+        sd[f] = np.sqrt(np.sum(resid[use[f]] ** 2) / max(n - 5, 1))
+    return delta, inv, sd, use
+
+
+@pytest.mark.parametrize("with_prior", [False, True])
+def test_least_squares_rounds_match_brute_force(with_prior: bool) -> None:
+    """``normal_sums`` then ``solve_rounds`` against the rounds written out with numpy, on
+    random lines with outliers: the sums, the lines left in use, the step, the inverse of the
+    final sums and the final RMS; a fit with too few lines gets NaN, one with no lines too."""
     rng = np.random.default_rng(12)
-    k, m = 6, 50
+    k, m = 6, 60
     jac = rng.normal(size=(k, 5, m)).astype(np.float32)
-    t = rng.normal(size=(k, m)).astype(np.float32)
-    t[:, :3] += 20.0  # outliers
+    t = (rng.normal(size=(k, m)) * 0.1).astype(np.float32)
+    t[:, 0] += 20.0  # an outlier per fit
     good = rng.random((k, m)) < 0.8
-    good[0] = False  # a fit with no lines
+    good[0] = False  # no lines
+    good[1, 10:] = False  # too few
     use = good.astype(np.uint8)
     normal, rhs = np.empty((k, 5, 5)), np.empty((k, 5))
     _profile_kernel.normal_sums(jac, t, use, m, normal, rhs)
-    j64, t64, g = jac.astype(np.float64), t.astype(np.float64), good[:, None, :]
+    j64, g = jac.astype(np.float64), good[:, None, :]
     np.testing.assert_allclose(normal, np.einsum("kpl,kql->kpq", j64 * g, j64), atol=1e-9)
-    np.testing.assert_allclose(rhs, -np.einsum("kpl,kl->kp", j64 * g, t64), atol=1e-9)
-    step = rng.normal(size=(k, 5)) * 0.1
-    sd, tt, used = np.empty(k), np.empty(k), np.empty(k, dtype=np.int64)
-    _profile_kernel.drop_outliers(jac, t, use, step, 2.0, m, normal, rhs, sd, tt, used)
-    resid = t64 + np.einsum("kp,kpl->kl", step, j64)
-    n = good.sum(axis=1)
-    want_sd = np.sqrt(np.where(good, resid**2, 0.0).sum(axis=1) / np.maximum(n - 5, 1))
-    np.testing.assert_allclose(sd, want_sd, rtol=1e-9)
-    keep = good & (np.abs(resid) <= 2.0 * want_sd[:, None])
-    assert np.array_equal(use.astype(bool), keep)
-    assert keep[1:, :3].sum() == 0 and keep.sum() > 0.5 * good.sum()
-    kk = keep[:, None, :]
-    np.testing.assert_allclose(normal, np.einsum("kpl,kql->kpq", j64 * kk, j64), atol=1e-9)
-    np.testing.assert_allclose(rhs, -np.einsum("kpl,kl->kp", j64 * kk, t64), atol=1e-9)
-    np.testing.assert_allclose(tt, np.where(keep, t64**2, 0.0).sum(axis=1), rtol=1e-9)
-    assert np.array_equal(used, keep.sum(axis=1))
+    np.testing.assert_allclose(rhs, -np.einsum("kpl,kl->kp", j64 * g, t.astype(float)), atol=1e-9)
+    q = o = None
+    args = (np.empty(0), np.empty(0))
+    if with_prior:
+        a = rng.normal(size=(k, 5, 5))
+        q, o = a @ a.transpose(0, 2, 1) * 10.0, rng.normal(size=(k, 5)) * 0.01
+        args = (q, o)
+    delta, inv, sd = np.empty((k, 5)), np.empty((k, 5, 5)), np.empty(k)
+    used = use.sum(axis=1, dtype=np.int64)
+    _profile_kernel.solve_rounds(
+        jac, t, use, m, normal, rhs, *args, 0.1, 12, 4.0, delta, inv, sd, used
+    )
+    want = _brute_rounds(jac, t, good, q, o, 0.1, 12, 4.0)
+    assert np.array_equal(use.astype(bool), want[3])
+    assert np.array_equal(used, want[3].sum(axis=1))
+    assert not want[3][2:, 0].any()  # the outliers left
+    assert np.all(np.isnan(delta[:2])) and np.all(np.isnan(inv[:2]))
+    np.testing.assert_allclose(delta[2:], want[0][2:], rtol=1e-7, atol=1e-10)
+    np.testing.assert_allclose(inv[2:], want[1][2:], rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(sd[2:], want[2][2:], rtol=1e-6)
 
 
 def test_fits_the_samples_cannot_reach_get_no_lines() -> None:
@@ -219,30 +262,6 @@ def test_fits_the_samples_cannot_reach_get_no_lines() -> None:
     assert np.all(lines.valid[[0, 4]]) and not np.any(lines.valid[1:4])
     assert np.all(np.isnan(mean[1:4])) and np.all(mass[1:4] == 0.0)
     np.testing.assert_array_equal(mean[0], mean[4])
-
-
-def test_spd_solve_matches_numpy_and_refuses_singular_systems() -> None:
-    """Steps and inverses of positive-definite 5 x 5 systems as numpy's; a singular system, an
-    indefinite one and one with a NaN give NaN rows, the others are unaffected."""
-    rng = np.random.default_rng(13)
-    a = rng.normal(size=(6, 8, 5))
-    lhs = a.transpose(0, 2, 1) @ a + 1e-3 * np.eye(5)
-    rhs = rng.normal(size=(6, 5))
-    lhs[1] = np.outer(np.arange(1.0, 6.0), np.arange(1.0, 6.0))  # rank one
-    lhs[2] = np.diag([1.0, 1.0, -1.0, 1.0, 1.0])
-    lhs[3, 0, 0] = np.nan
-    delta, inv = np.empty((6, 5)), np.empty((6, 5, 5))
-    _profile_kernel.spd_solve(lhs, rhs, delta, inv)
-    good = [0, 4, 5]
-    np.testing.assert_allclose(
-        delta[good], np.linalg.solve(lhs[good], rhs[good][..., None])[..., 0]
-    )
-    np.testing.assert_allclose(inv[good], np.linalg.inv(lhs[good]), rtol=1e-9, atol=1e-12)
-    assert np.all(np.isnan(delta[1:4])) and np.all(np.isnan(inv[1:4]))
-    _profile_kernel.spd_solve(lhs, rhs, delta, np.empty(0))  # no inverse wanted
-    np.testing.assert_allclose(
-        delta[good], np.linalg.solve(lhs[good], rhs[good][..., None])[..., 0]
-    )
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
