@@ -188,19 +188,30 @@ SAMPLER(sample_u16, uint16_t)
 SAMPLER(sample_f32, float)
 
 /* The compiler does not vectorise gathers of 8 or 16-bit pixels (x86 gathers 32-bit words), so
- * for those the AVX2 loop is written out: each pixel from the 32-bit word at its byte offset
- * (clamped to the buffer's last word, the pixel then shifted out of it), masked to its width. */
+ * for those the AVX2 loop is written out: each pair of horizontally adjacent pixels from the
+ * 32-bit word at the first's byte offset (clamped to the buffer's last word, the pixels then
+ * shifted out of it), masked to their width. */
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 #include <immintrin.h>
 #define HAVE_AVX2_SAMPLERS 1
 
-__attribute__((target("avx2"))) static inline __m256 gather_narrow(const void *img, __m256i off,
-                                                                   __m256i last, __m256i mask)
+
+
+/* Two horizontally adjacent pixels (x0, x0 + 1 of one row) from one 32-bit word: the pixel at
+ * byte offset off and the next; where x1 == x0 (clamped at the right border) both are the one.
+ * Half the gathers of one per pixel. */
+__attribute__((target("avx2"))) static inline void gather_pair(const void *img, __m256i off,
+                                                               __m256i last, __m256i mask,
+                                                               __m256i width_bits, __m256i same,
+                                                               __m256 *p0, __m256 *p1)
 {
     const __m256i at = _mm256_min_epi32(off, last);
     const __m256i shift = _mm256_slli_epi32(_mm256_sub_epi32(off, at), 3);
-    const __m256i word = _mm256_i32gather_epi32((const int *)img, at, 1);
-    return _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srlv_epi32(word, shift), mask));
+    const __m256i word = _mm256_srlv_epi32(_mm256_i32gather_epi32((const int *)img, at, 1), shift);
+    const __m256i a = _mm256_and_si256(word, mask);
+    const __m256i b = _mm256_and_si256(_mm256_srlv_epi32(word, width_bits), mask);
+    *p0 = _mm256_cvtepi32_ps(a);
+    *p1 = _mm256_cvtepi32_ps(_mm256_blendv_epi8(b, a, same));
 }
 
 /* sample_u8 / sample_u16 (bytes per pixel: 1 or 2) eight lines at a time; the tail by them. */
@@ -217,6 +228,7 @@ __attribute__((target("avx2"))) static void sample_narrow_avx2(
     const __m256i vw = _mm256_set1_epi32(w), vb = _mm256_set1_epi32(bytes);
     const __m256i last = _mm256_set1_epi32(w * h * bytes - 4);
     const __m256i mask = _mm256_set1_epi32(bytes == 1 ? 0xFF : 0xFFFF);
+    const __m256i bits = _mm256_set1_epi32(8 * bytes);
     int l = 0;
     for (; l + 8 <= n; l += 8) {
         const __m256 x = _mm256_add_ps(
@@ -233,10 +245,12 @@ __attribute__((target("avx2"))) static void sample_narrow_avx2(
         const __m256i y0 = _mm256_max_epi32(_mm256_min_epi32(gy, hm), zero);
         const __m256i y1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(gy, one), hm), zero);
         const __m256i r0 = _mm256_mullo_epi32(y0, vw), r1 = _mm256_mullo_epi32(y1, vw);
-        const __m256 p00 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x0), vb), last, mask);
-        const __m256 p01 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x1), vb), last, mask);
-        const __m256 p10 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x0), vb), last, mask);
-        const __m256 p11 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x1), vb), last, mask);
+        const __m256i same = _mm256_cmpeq_epi32(x0, x1);
+        __m256 p00, p01, p10, p11;
+        gather_pair(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x0), vb), last, mask, bits, same,
+                    &p00, &p01);
+        gather_pair(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x0), vb), last, mask, bits, same,
+                    &p10, &p11);
         const __m256 top = _mm256_add_ps(p00, _mm256_mul_ps(ax, _mm256_sub_ps(p01, p00)));
         const __m256 bot = _mm256_add_ps(p10, _mm256_mul_ps(ax, _mm256_sub_ps(p11, p10)));
         _mm256_storeu_ps(out + l, _mm256_add_ps(top, _mm256_mul_ps(ay, _mm256_sub_ps(bot, top))));
@@ -938,6 +952,7 @@ __attribute__((target("avx2"))) static void points_narrow_avx2(const void *img, 
     const __m256i vw = _mm256_set1_epi32(w), vb = _mm256_set1_epi32(bytes);
     const __m256i last = _mm256_set1_epi32(w * h * bytes - 4);
     const __m256i mask = _mm256_set1_epi32(bytes == 1 ? 0xFF : 0xFFFF);
+    const __m256i bits = _mm256_set1_epi32(8 * bytes);
     Py_ssize_t i = 0;
     for (; i + 8 <= n; i += 8) {
         /* max with the point first: a NaN point becomes the bound. */
@@ -952,10 +967,12 @@ __attribute__((target("avx2"))) static void points_narrow_avx2(const void *img, 
         const __m256i y0 = _mm256_max_epi32(_mm256_min_epi32(yi, hm), zero);
         const __m256i y1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(yi, one), hm), zero);
         const __m256i r0 = _mm256_mullo_epi32(y0, vw), r1 = _mm256_mullo_epi32(y1, vw);
-        const __m256 p00 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x0), vb), last, mask);
-        const __m256 p01 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x1), vb), last, mask);
-        const __m256 p10 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x0), vb), last, mask);
-        const __m256 p11 = gather_narrow(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x1), vb), last, mask);
+        const __m256i same = _mm256_cmpeq_epi32(x0, x1);
+        __m256 p00, p01, p10, p11;
+        gather_pair(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x0), vb), last, mask, bits, same,
+                    &p00, &p01);
+        gather_pair(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x0), vb), last, mask, bits, same,
+                    &p10, &p11);
         const __m256 top = _mm256_add_ps(p00, _mm256_mul_ps(ax, _mm256_sub_ps(p01, p00)));
         const __m256 bot = _mm256_add_ps(p10, _mm256_mul_ps(ax, _mm256_sub_ps(p11, p10)));
         const __m256 val = _mm256_add_ps(top, _mm256_mul_ps(ay, _mm256_sub_ps(bot, top)));
@@ -980,10 +997,11 @@ __attribute__((target("avx2"))) static void points_narrow_avx2(const void *img, 
 #endif
 
 PyDoc_STRVAR(sample_points_doc,
-"sample_points(src, kind, height, width, u, v, out)\n\n"
+"sample_points(src, kind, height, width, u, v, out, row=0)\n\n"
 "Bilinear samples of src (height, width) of uint8 (kind 0), uint16 (1) or float32 (2) pixels\n"
 "at the points (u, v) (float32, n each) into out (float32, n): cv2.remap's INTER_LINEAR with\n"
-"BORDER_CONSTANT 0, integer images' samples rounded to integers as remap gives them.");
+"BORDER_CONSTANT 0, integer images' samples rounded to integers as remap gives them; row: the\n"
+"points of one object (the pixels of the next row's are prefetched), 0 for all in one.");
 
 static PyObject *sample_points(PyObject *self, PyObject *args)
 {
@@ -994,7 +1012,8 @@ static PyObject *sample_points(PyObject *self, PyObject *args)
     memset(&bo, 0, sizeof(bo));
     int kind = -1;
     Py_ssize_t h = 0, w = 0;
-    int ok = PyArg_ParseTuple(args, "y*inny*y*w*", &bs, &kind, &h, &w, &bu, &bv, &bo);
+    Py_ssize_t row = 0;
+    int ok = PyArg_ParseTuple(args, "y*inny*y*w*|n", &bs, &kind, &h, &w, &bu, &bv, &bo, &row);
     if (ok && (h < 1 || w < 1 || h > INT_MAX / w || (kind != 0 && kind != 1 && kind != 2))) {
         PyErr_SetString(PyExc_ValueError, "bad image size or pixel kind");
         ok = 0;
@@ -1010,7 +1029,27 @@ static PyObject *sample_points(PyObject *self, PyObject *args)
         Py_BEGIN_ALLOW_THREADS
 #ifdef HAVE_AVX2_SAMPLERS
         if (have_avx2 && kind != 2 && w * h * (kind + 1) >= 4 && w * h * (kind + 1) < INT_MAX)
-            points_narrow_avx2(bs.buf, kind + 1, (int)w, (int)h, n, u, v, out);
+        {
+            /* Row by row (a candidate's points), the next row's pixels asked for first: the
+             * rows jump across the frame, which no hardware prefetcher follows. */
+            const Py_ssize_t rows = row > 0 ? (n + row - 1) / row : 1, len = row > 0 ? row : n;
+            for (Py_ssize_t r = 0; r < rows; r++) {
+                const Py_ssize_t start = r * len, count = start + len <= n ? len : n - start;
+                if (r + 1 < rows) {
+                    const Py_ssize_t next = start + len;
+                    const Py_ssize_t stop = next + len <= n ? next + len : n;
+                    for (Py_ssize_t i = next; i < stop; i += 4) {
+                        const float x = u[i], y = v[i];
+                        if (x >= 0.0f && y >= 0.0f && x < (float)w && y < (float)h)
+                            __builtin_prefetch((const char *)bs.buf +
+                                                   ((Py_ssize_t)y * w + (Py_ssize_t)x) * (kind + 1),
+                                               0, 1);
+                    }
+                }
+                points_narrow_avx2(bs.buf, kind + 1, (int)w, (int)h, count, u + start,
+                                   v + start, out + start);
+            }
+        }
         else
 #endif
         if (kind == 0)

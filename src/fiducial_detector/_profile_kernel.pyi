@@ -58,5 +58,5 @@ def solve_rounds(
     used: Buffer,
 ) -> None: ...
 def sample_points(
-    src: Buffer, kind: int, height: int, width: int, u: Buffer, v: Buffer, out: Buffer
+    src: Buffer, kind: int, height: int, width: int, u: Buffer, v: Buffer, out: Buffer, row: int = 0
 ) -> None: ...

@@ -323,6 +323,7 @@ def _sample(
             np.ascontiguousarray(u, dtype=np.float32),
             np.ascontiguousarray(v, dtype=np.float32),
             out,
+            k,
         )
     else:
         for start in range(0, n, _MAX_REMAP_ROWS):
