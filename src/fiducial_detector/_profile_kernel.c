@@ -6,7 +6,8 @@
  *                  least-squares sums (profile_fit._edge_terms, the sums of _solve);
  *   normal_sums    the least-squares sums over given lines;
  *   solve_rounds   the fits' two least-squares rounds (Cholesky), the outliers out between;
- *   sample_points  bilinear samples at given points, as cv2.remap gives them (the code reader).
+ *   sample_points  bilinear samples at given points, as cv2.remap gives them;
+ *   sample_tracks  the code reader's samples along its elliptical tracks (points made here).
  *
  * Why compiled: numpy works a pass as whole (fits x lines x samples) arrays, each a fresh
  * temporary through memory, and cv2.remap needs sample maps built and a float32 copy of the
@@ -1068,11 +1069,119 @@ static PyObject *sample_points(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+PyDoc_STRVAR(sample_tracks_doc,
+"sample_tracks(src, kind, height, width, centre, axes, angle, drift, weights, out, outside)\n\n"
+"The code reader's samples (code_reader._sample_points): for N candidates (centre, axes, drift\n"
+"float64 (N, 2), angle float64 (N,)) the K points u = whole + (frac, drift, R diag(a, b)) .\n"
+"weights (float32 (4, K), as code_reader._track_maps forms them, in float32 relative to the\n"
+"whole pixel nearest the centre), sampled as sample_points does into out float32 (N, K);\n"
+"outside uint8 (N, K) marks the points off the image. Each candidate's points are made while\n"
+"the previous one's are sampled, and their pixels prefetched.");
+
+static void track_row(const double *c, const double *ax, double ang, const double *dr,
+                      const float *wt, Py_ssize_t kk, float *u, float *v)
+{
+    const double co = cos(ang), si = sin(ang);
+    const double wu = nearbyint(c[0]), wv = nearbyint(c[1]);
+    const float cu[4] = {(float)(c[0] - wu), (float)dr[0], (float)(co * ax[0]), (float)(-si * ax[1])};
+    const float cv[4] = {(float)(c[1] - wv), (float)dr[1], (float)(si * ax[0]), (float)(co * ax[1])};
+    const float fu = (float)wu, fv = (float)wv;
+    for (Py_ssize_t j = 0; j < kk; j++) {
+        const float w0 = wt[j], w1 = wt[kk + j], w2 = wt[2 * kk + j], w3 = wt[3 * kk + j];
+        u[j] = (((cu[0] * w0 + cu[1] * w1) + cu[2] * w2) + cu[3] * w3) + fu;
+        v[j] = (((cv[0] * w0 + cv[1] * w1) + cv[2] * w2) + cv[3] * w3) + fv;
+    }
+}
+
+static PyObject *sample_tracks(PyObject *self, PyObject *args)
+{
+    Py_buffer bs, bc, ba, bg, bd, bw, bo, bx;
+    Py_buffer *all[] = {&bs, &bc, &ba, &bg, &bd, &bw, &bo, &bx};
+    for (size_t i = 0; i < sizeof(all) / sizeof(all[0]); i++) memset(all[i], 0, sizeof(Py_buffer));
+    int kind = -1;
+    Py_ssize_t h = 0, w = 0;
+    int ok = PyArg_ParseTuple(args, "y*inny*y*y*y*y*w*w*", &bs, &kind, &h, &w, &bc, &ba, &bg, &bd,
+                              &bw, &bo, &bx);
+    if (ok && (h < 1 || w < 1 || h > INT_MAX / w || (kind != 0 && kind != 1 && kind != 2))) {
+        PyErr_SetString(PyExc_ValueError, "bad image size or pixel kind");
+        ok = 0;
+    }
+    const Py_ssize_t n = ok ? bg.len / 8 : 0;
+    const Py_ssize_t kk = ok ? bw.len / 16 : 0;
+    CHECK(bs, h * w, kind == 0 ? 1 : (kind == 1 ? 2 : 4), "src");
+    CHECK(bc, 2 * n, 8, "centre");
+    CHECK(ba, 2 * n, 8, "axes");
+    CHECK(bd, 2 * n, 8, "drift");
+    CHECK(bw, 4 * kk, 4, "weights");
+    CHECK(bo, n * kk, 4, "out");
+    CHECK(bx, n * kk, 1, "outside");
+    float *rows = NULL;
+    if (ok) {
+        rows = (float *)malloc(4 * (size_t)(kk > 0 ? kk : 1) * sizeof(float));
+        if (rows == NULL) {
+            PyErr_NoMemory();
+            ok = 0;
+        }
+    }
+    if (ok) {
+        const double *centre = (const double *)bc.buf, *axes = (const double *)ba.buf;
+        const double *angle = (const double *)bg.buf, *drift = (const double *)bd.buf;
+        const float *wt = (const float *)bw.buf;
+        float *out = (float *)bo.buf;
+        uint8_t *outside = (uint8_t *)bx.buf;
+        const int bytes = kind == 0 ? 1 : (kind == 1 ? 2 : 4);
+        Py_BEGIN_ALLOW_THREADS
+        float *cur = rows, *next = rows + 2 * kk;
+        if (n > 0) track_row(centre, axes, angle[0], drift, wt, kk, cur, cur + kk);
+        for (Py_ssize_t r = 0; r < n; r++) {
+            if (r + 1 < n) {
+                /* The next candidate's points now, their pixels asked for. */
+                track_row(centre + 2 * (r + 1), axes + 2 * (r + 1), angle[r + 1],
+                          drift + 2 * (r + 1), wt, kk, next, next + kk);
+                for (Py_ssize_t j = 0; j < kk; j += 4) {
+                    const float x = next[j], y = next[kk + j];
+                    if (x >= 0.0f && y >= 0.0f && x < (float)w && y < (float)h)
+                        __builtin_prefetch((const char *)bs.buf +
+                                               ((Py_ssize_t)y * w + (Py_ssize_t)x) * bytes,
+                                           0, 1);
+                }
+            }
+            const float *u = cur, *v = cur + kk;
+            float *o = out + r * kk;
+            uint8_t *x = outside + r * kk;
+            for (Py_ssize_t j = 0; j < kk; j++)
+                x[j] = (uint8_t)(!(u[j] >= 0.0f) | !(u[j] <= (float)(w - 1)) | !(v[j] >= 0.0f) |
+                                 !(v[j] <= (float)(h - 1)));
+#ifdef HAVE_AVX2_SAMPLERS
+            if (have_avx2 && kind != 2 && w * h * bytes >= 4 && w * h * bytes < INT_MAX)
+                points_narrow_avx2(bs.buf, bytes, (int)w, (int)h, kk, u, v, o);
+            else
+#endif
+            if (kind == 0)
+                points_u8((const uint8_t *)bs.buf, (int)w, (int)h, kk, u, v, o);
+            else if (kind == 1)
+                points_u16((const uint16_t *)bs.buf, (int)w, (int)h, kk, u, v, o);
+            else
+                points_f32((const float *)bs.buf, (int)w, (int)h, kk, u, v, o);
+            float *swap = cur;
+            cur = next;
+            next = swap;
+        }
+        Py_END_ALLOW_THREADS
+    }
+    free(rows);
+    for (size_t i = 0; i < sizeof(all) / sizeof(all[0]); i++)
+        if (all[i]->obj != NULL) PyBuffer_Release(all[i]);
+    if (!ok) return NULL;
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"sample_lines", sample_lines, METH_VARARGS, sample_lines_doc},
     {"normal_sums", normal_sums, METH_VARARGS, normal_sums_doc},
     {"solve_rounds", solve_rounds, METH_VARARGS, solve_rounds_doc},
     {"sample_points", sample_points, METH_VARARGS, sample_points_doc},
+    {"sample_tracks", sample_tracks, METH_VARARGS, sample_tracks_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -60,3 +60,16 @@ def solve_rounds(
 def sample_points(
     src: Buffer, kind: int, height: int, width: int, u: Buffer, v: Buffer, out: Buffer, row: int = 0
 ) -> None: ...
+def sample_tracks(
+    src: Buffer,
+    kind: int,
+    height: int,
+    width: int,
+    centre: Buffer,
+    axes: Buffer,
+    angle: Buffer,
+    drift: Buffer,
+    weights: Buffer,
+    out: Buffer,
+    outside: Buffer,
+) -> None: ...

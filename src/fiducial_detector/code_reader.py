@@ -192,10 +192,7 @@ def _track_maps(
     whole pixel nearest each centre, added last, so float32 keeps its ~1e-5 px resolution on
     the small offsets and rounds only once at the frame's scale.
     """
-    scale = radii / r0
-    weights = np.stack(
-        [np.ones_like(radii), radii**2 - r0**2, np.cos(params) * scale, -np.sin(params) * scale]
-    ).astype(dtype)  # (4, K)
+    weights = _track_weights(r0, radii, params, dtype)
     c, s = np.cos(angle), np.sin(angle)
     a, b = axes[:, 0], axes[:, 1]
     whole = np.round(centre)
@@ -205,6 +202,19 @@ def _track_maps(
     u += whole[:, 0:1].astype(dtype)
     v += whole[:, 1:2].astype(dtype)
     return u, v
+
+
+def _track_weights(
+    r0: float,
+    radii: NDArray[np.float64],
+    params: NDArray[np.float64],
+    dtype: type[np.floating[Any]],
+) -> NDArray[Any]:
+    """``(4, K)`` per-point weights of :func:`_track_maps`' four per-candidate terms."""
+    scale = radii / r0
+    return np.stack(
+        [np.ones_like(radii), radii**2 - r0**2, np.cos(params) * scale, -np.sin(params) * scale]
+    ).astype(dtype)
 
 
 def track_points(
@@ -247,6 +257,27 @@ def _sample_points(
     params: NDArray[np.float64],
 ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     """:func:`_sample` at the points of :func:`track_points` (arguments as there)."""
+    kind = _KERNEL_KINDS.get(image.dtype)
+    if kind is not None and image.ndim == 2 and image.flags.c_contiguous and min(image.shape) > 1:
+        # The kernel makes each candidate's points as :func:`_track_maps` does (float32,
+        # relative to the whole pixel nearest the centre) while sampling the previous one's.
+        n, k = len(centre), len(radii)
+        out = np.empty((n, k), dtype=np.float32)
+        outside = np.empty((n, k), dtype=np.uint8)
+        _profile_kernel.sample_tracks(
+            image,
+            kind,
+            image.shape[0],
+            image.shape[1],
+            np.ascontiguousarray(centre, dtype=np.float64),
+            np.ascontiguousarray(axes, dtype=np.float64),
+            np.ascontiguousarray(angle, dtype=np.float64),
+            np.ascontiguousarray(drift, dtype=np.float64),
+            np.ascontiguousarray(_track_weights(r0, radii, params, np.float32)),
+            out,
+            outside,
+        )
+        return out, outside.view(np.bool_)
     u, v = _track_maps(centre, axes, angle, r0, drift, radii, params, np.float32)
     return _sample(image, u, v, _near_border(centre, axes, angle, r0, drift, radii, image.shape))
 

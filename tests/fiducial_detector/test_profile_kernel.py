@@ -297,3 +297,30 @@ def test_point_samples_are_remaps(dtype: type) -> None:
         assert np.max(diff) <= 1.0
         # float32 resolves a 16-bit sample to ~0.004: more of them lie near a half.
         assert np.count_nonzero(diff) <= (5 if dtype == np.uint8 else 100)
+
+
+def test_track_samples_are_the_code_readers_remaps(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``sample_tracks`` gives the code reader's samples and off-image marks as its maps and
+    ``cv2.remap`` give them, candidates near and past the border included."""
+    from fiducial_detector import code_reader
+
+    rng = np.random.default_rng(15)
+    image = cv2.GaussianBlur(rng.integers(0, 256, (150, 200)).astype(np.uint8), (0, 0), 2.0)
+    n = 300
+    centre = np.column_stack([rng.uniform(-10, 210, n), rng.uniform(-10, 160, n)])
+    a = rng.uniform(5, 40, n)
+    axes = np.column_stack([a, a * rng.uniform(0.3, 1.0, n)])
+    angle = rng.uniform(0, np.pi, n)
+    drift = rng.normal(0, 0.002, (n, 2))
+    radii = np.repeat([0.3, 0.55, 0.9, 1.1], 24)
+    params = np.tile(np.linspace(0, 2 * np.pi, 24, endpoint=False), 4)
+    r0 = 1.0
+    got, outside = code_reader._sample_points(image, centre, axes, angle, r0, drift, radii, params)
+    u, v = code_reader._track_maps(centre, axes, angle, r0, drift, radii, params, np.float32)
+    near = code_reader._near_border(centre, axes, angle, r0, drift, radii, image.shape)
+    monkeypatch.setattr(code_reader, "_KERNEL_KINDS", {})  # cv2.remap's samples
+    want, want_outside = code_reader._sample(image, u, v, near)
+    assert outside.any() and not outside.all()
+    assert np.array_equal(outside, want_outside)
+    diff = np.abs(got - want)
+    assert np.max(diff) <= 1.0 and np.count_nonzero(diff) <= 0.001 * diff.size
