@@ -1078,8 +1078,20 @@ PyDoc_STRVAR(sample_tracks_doc,
 "outside uint8 (N, K) marks the points off the image. Each candidate's points are made while\n"
 "the previous one's are sampled, and their pixels prefetched.");
 
-static void track_row(const double *c, const double *ax, double ang, const double *dr,
-                      const float *wt, Py_ssize_t kk, float *u, float *v)
+/* Points off the image [0, wmax] x [0, hmax] (NaN ones too). */
+SIMD static void off_image(Py_ssize_t n, const float *restrict u, const float *restrict v,
+                           float wmax, float hmax, uint8_t *restrict out)
+{
+    for (Py_ssize_t j = 0; j < n; j++) {
+        const int in = (u[j] >= 0.0f) & (u[j] <= wmax) & (v[j] >= 0.0f) & (v[j] <= hmax);
+        out[j] = (uint8_t)(1 - in);
+    }
+}
+
+/* One candidate's track points (code_reader._track_maps' arithmetic, in float32). */
+SIMD static void track_row(const double *c, const double *ax, double ang, const double *dr,
+                           const float *restrict wt, Py_ssize_t kk, float *restrict u,
+                           float *restrict v)
 {
     const double co = cos(ang), si = sin(ang);
     const double wu = nearbyint(c[0]), wv = nearbyint(c[1]);
@@ -1149,9 +1161,7 @@ static PyObject *sample_tracks(PyObject *self, PyObject *args)
             const float *u = cur, *v = cur + kk;
             float *o = out + r * kk;
             uint8_t *x = outside + r * kk;
-            for (Py_ssize_t j = 0; j < kk; j++)
-                x[j] = (uint8_t)(!(u[j] >= 0.0f) | !(u[j] <= (float)(w - 1)) | !(v[j] >= 0.0f) |
-                                 !(v[j] <= (float)(h - 1)));
+            off_image(kk, u, v, (float)(w - 1), (float)(h - 1), x);
 #ifdef HAVE_AVX2_SAMPLERS
             if (have_avx2 && kind != 2 && w * h * bytes >= 4 && w * h * bytes < INT_MAX)
                 points_narrow_avx2(bs.buf, bytes, (int)w, (int)h, kk, u, v, o);
