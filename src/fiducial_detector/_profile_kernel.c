@@ -6,8 +6,8 @@
  *                  least-squares sums (profile_fit._edge_terms, the sums of _solve);
  *   normal_sums    the least-squares sums over given lines;
  *   solve_rounds   the fits' two least-squares rounds (Cholesky), the outliers out between;
- *   sample_points  bilinear samples at given points, as cv2.remap gives them;
- *   sample_tracks  the code reader's samples along its elliptical tracks (points made here).
+ *   sample_tracks  the code reader's samples along its elliptical tracks, as cv2.remap gives
+ *                  them (the points made here).
  *
  * Why compiled: numpy works a pass as whole (fits x lines x samples) arrays, each a fresh
  * temporary through memory, and cv2.remap needs sample maps built and a float32 copy of the
@@ -997,78 +997,6 @@ __attribute__((target("avx2"))) static void points_narrow_avx2(const void *img, 
 }
 #endif
 
-PyDoc_STRVAR(sample_points_doc,
-"sample_points(src, kind, height, width, u, v, out, row=0)\n\n"
-"Bilinear samples of src (height, width) of uint8 (kind 0), uint16 (1) or float32 (2) pixels\n"
-"at the points (u, v) (float32, n each) into out (float32, n): cv2.remap's INTER_LINEAR with\n"
-"BORDER_CONSTANT 0, integer images' samples rounded to integers as remap gives them; row: the\n"
-"points of one object (the pixels of the next row's are prefetched), 0 for all in one.");
-
-static PyObject *sample_points(PyObject *self, PyObject *args)
-{
-    Py_buffer bs, bu, bv, bo;
-    memset(&bs, 0, sizeof(bs));
-    memset(&bu, 0, sizeof(bu));
-    memset(&bv, 0, sizeof(bv));
-    memset(&bo, 0, sizeof(bo));
-    int kind = -1;
-    Py_ssize_t h = 0, w = 0;
-    Py_ssize_t row = 0;
-    int ok = PyArg_ParseTuple(args, "y*inny*y*w*|n", &bs, &kind, &h, &w, &bu, &bv, &bo, &row);
-    if (ok && (h < 1 || w < 1 || h > INT_MAX / w || (kind != 0 && kind != 1 && kind != 2))) {
-        PyErr_SetString(PyExc_ValueError, "bad image size or pixel kind");
-        ok = 0;
-    }
-    const Py_ssize_t n = ok ? bu.len / 4 : 0;
-    CHECK(bs, h * w, kind == 0 ? 1 : (kind == 1 ? 2 : 4), "src");
-    CHECK(bu, n, 4, "u");
-    CHECK(bv, n, 4, "v");
-    CHECK(bo, n, 4, "out");
-    if (ok) {
-        const float *u = (const float *)bu.buf, *v = (const float *)bv.buf;
-        float *out = (float *)bo.buf;
-        Py_BEGIN_ALLOW_THREADS
-#ifdef HAVE_AVX2_SAMPLERS
-        if (have_avx2 && kind != 2 && w * h * (kind + 1) >= 4 && w * h * (kind + 1) < INT_MAX)
-        {
-            /* Row by row (a candidate's points), the next row's pixels asked for first: the
-             * rows jump across the frame, which no hardware prefetcher follows. */
-            const Py_ssize_t rows = row > 0 ? (n + row - 1) / row : 1, len = row > 0 ? row : n;
-            for (Py_ssize_t r = 0; r < rows; r++) {
-                const Py_ssize_t start = r * len, count = start + len <= n ? len : n - start;
-                if (r + 1 < rows) {
-                    const Py_ssize_t next = start + len;
-                    const Py_ssize_t stop = next + len <= n ? next + len : n;
-                    for (Py_ssize_t i = next; i < stop; i += 4) {
-                        const float x = u[i], y = v[i];
-                        if (x >= 0.0f && y >= 0.0f && x < (float)w && y < (float)h)
-                            __builtin_prefetch((const char *)bs.buf +
-                                                   ((Py_ssize_t)y * w + (Py_ssize_t)x) * (kind + 1),
-                                               0, 1);
-                    }
-                }
-                points_narrow_avx2(bs.buf, kind + 1, (int)w, (int)h, count, u + start,
-                                   v + start, out + start);
-            }
-        }
-        else
-#endif
-        if (kind == 0)
-            points_u8((const uint8_t *)bs.buf, (int)w, (int)h, n, u, v, out);
-        else if (kind == 1)
-            points_u16((const uint16_t *)bs.buf, (int)w, (int)h, n, u, v, out);
-        else
-            points_f32((const float *)bs.buf, (int)w, (int)h, n, u, v, out);
-        Py_END_ALLOW_THREADS
-    }
-    PyBuffer_Release(&bs);
-    PyBuffer_Release(&bu);
-    PyBuffer_Release(&bv);
-    PyBuffer_Release(&bo);
-    if (!ok) return NULL;
-    Py_RETURN_NONE;
-}
-
 PyDoc_STRVAR(sample_tracks_doc,
 "sample_tracks(src, kind, height, width, centre, axes, angle, drift, weights, out, outside)\n\n"
 "The code reader's samples (code_reader._sample_points): for N candidates (centre, axes, drift\n"
@@ -1190,7 +1118,6 @@ static PyMethodDef methods[] = {
     {"sample_lines", sample_lines, METH_VARARGS, sample_lines_doc},
     {"normal_sums", normal_sums, METH_VARARGS, normal_sums_doc},
     {"solve_rounds", solve_rounds, METH_VARARGS, solve_rounds_doc},
-    {"sample_points", sample_points, METH_VARARGS, sample_points_doc},
     {"sample_tracks", sample_tracks, METH_VARARGS, sample_tracks_doc},
     {NULL, NULL, 0, NULL},
 };

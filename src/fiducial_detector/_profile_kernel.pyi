@@ -57,9 +57,6 @@ def solve_rounds(
     sd: Buffer,
     used: Buffer,
 ) -> None: ...
-def sample_points(
-    src: Buffer, kind: int, height: int, width: int, u: Buffer, v: Buffer, out: Buffer, row: int = 0
-) -> None: ...
 def sample_tracks(
     src: Buffer,
     kind: int,

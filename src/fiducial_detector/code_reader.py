@@ -327,9 +327,9 @@ def _sample(
     ``near``: the candidates (rows) whose points may have (:func:`_near_border`), the only ones
     tested point by point.
 
-    Interpolated as ``cv2.remap`` does it, in the image's own type (an 8-bit image gives 8-bit
-    samples, ample for telling black from white), so the full frame is never converted to
-    float: by the profile fit's kernel for 8/16-bit and float32 images (OpenCV otherwise). The
+    OpenCV interpolates in the image's own type (an 8-bit image gives 8-bit samples, ample for
+    telling black from white), so the full frame is never converted to float (8/16-bit and
+    float32 images take the kernel's :func:`_sample_points` instead, which samples alike). The
     samples come back as float32: integer samples and the sums of up to 12 of them stay exact
     in float32, so the rest of the reader works on exact integers for integer images.
 
@@ -342,32 +342,17 @@ def _sample(
     """
     n, k = u.shape
     out = np.empty((n, k), dtype=np.float32)
-    kind = _KERNEL_KINDS.get(image.dtype)
-    if kind is not None and image.ndim == 2 and image.flags.c_contiguous and min(image.shape) > 1:
-        # The profile fit's kernel samples as remap does (OpenCV 5: float bilinear from the
-        # exact position, rounded to the image's integers), in SIMD on 8/16-bit pixels.
-        _profile_kernel.sample_points(
+    for start in range(0, n, _MAX_REMAP_ROWS):
+        stop = start + _MAX_REMAP_ROWS
+        got = cv2.remap(
             image,
-            kind,
-            image.shape[0],
-            image.shape[1],
-            np.ascontiguousarray(u, dtype=np.float32),
-            np.ascontiguousarray(v, dtype=np.float32),
-            out,
-            k,
+            u[start:stop],
+            v[start:stop],
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
         )
-    else:
-        for start in range(0, n, _MAX_REMAP_ROWS):
-            stop = start + _MAX_REMAP_ROWS
-            got = cv2.remap(
-                image,
-                u[start:stop],
-                v[start:stop],
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=0,
-            )
-            out[start:stop] = got
+        out[start:stop] = got
     h, w = image.shape
     outside = np.zeros((n, k), dtype=bool)
     if near.any():
