@@ -215,6 +215,49 @@ __attribute__((target("avx2"))) static inline void gather_pair(const void *img, 
     *p1 = _mm256_cvtepi32_ps(_mm256_blendv_epi8(b, a, same));
 }
 
+/* The frame's constants for bilinear_narrow. */
+typedef struct {
+    __m256i wm, hm, zero, one, vw, vb, last, mask, bits;
+} Narrow;
+
+__attribute__((target("avx2"))) static inline Narrow narrow_frame(int w, int h, int bytes)
+{
+    Narrow c;
+    c.wm = _mm256_set1_epi32(w - 1);
+    c.hm = _mm256_set1_epi32(h - 1);
+    c.zero = _mm256_setzero_si256();
+    c.one = _mm256_set1_epi32(1);
+    c.vw = _mm256_set1_epi32(w);
+    c.vb = _mm256_set1_epi32(bytes);
+    c.last = _mm256_set1_epi32(w * h * bytes - 4);
+    c.mask = _mm256_set1_epi32(bytes == 1 ? 0xFF : 0xFFFF);
+    c.bits = _mm256_set1_epi32(8 * bytes);
+    return c;
+}
+
+/* Bilinear samples of eight points whose floor pixels are (gx, gy) and fractions (ax, ay), the
+ * corners clamped into the frame. */
+__attribute__((target("avx2"))) static inline __m256 bilinear_narrow(const void *img,
+                                                                     const Narrow *c, __m256i gx,
+                                                                     __m256i gy, __m256 ax,
+                                                                     __m256 ay)
+{
+    const __m256i x0 = _mm256_max_epi32(_mm256_min_epi32(gx, c->wm), c->zero);
+    const __m256i x1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(gx, c->one), c->wm), c->zero);
+    const __m256i y0 = _mm256_max_epi32(_mm256_min_epi32(gy, c->hm), c->zero);
+    const __m256i y1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(gy, c->one), c->hm), c->zero);
+    const __m256i r0 = _mm256_mullo_epi32(y0, c->vw), r1 = _mm256_mullo_epi32(y1, c->vw);
+    const __m256i same = _mm256_cmpeq_epi32(x0, x1);
+    __m256 p00, p01, p10, p11;
+    gather_pair(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x0), c->vb), c->last, c->mask,
+                c->bits, same, &p00, &p01);
+    gather_pair(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x0), c->vb), c->last, c->mask,
+                c->bits, same, &p10, &p11);
+    const __m256 top = _mm256_add_ps(p00, _mm256_mul_ps(ax, _mm256_sub_ps(p01, p00)));
+    const __m256 bot = _mm256_add_ps(p10, _mm256_mul_ps(ax, _mm256_sub_ps(p11, p10)));
+    return _mm256_add_ps(top, _mm256_mul_ps(ay, _mm256_sub_ps(bot, top)));
+}
+
 /* sample_u8 / sample_u16 (bytes per pixel: 1 or 2) eight lines at a time; the tail by them. */
 __attribute__((target("avx2"))) static void sample_narrow_avx2(
     const void *img, int bytes, int w, int h, int cu, int cv, float fu, float fv, float frac,
@@ -224,12 +267,7 @@ __attribute__((target("avx2"))) static void sample_narrow_avx2(
     const __m256 reach = _mm256_set1_ps(MAX_REACH);
     const __m256i ireach = _mm256_set1_epi32((int)MAX_REACH);
     const __m256i vcu = _mm256_set1_epi32(cu), vcv = _mm256_set1_epi32(cv);
-    const __m256i wm = _mm256_set1_epi32(w - 1), hm = _mm256_set1_epi32(h - 1);
-    const __m256i zero = _mm256_setzero_si256(), one = _mm256_set1_epi32(1);
-    const __m256i vw = _mm256_set1_epi32(w), vb = _mm256_set1_epi32(bytes);
-    const __m256i last = _mm256_set1_epi32(w * h * bytes - 4);
-    const __m256i mask = _mm256_set1_epi32(bytes == 1 ? 0xFF : 0xFFFF);
-    const __m256i bits = _mm256_set1_epi32(8 * bytes);
+    const Narrow c = narrow_frame(w, h, bytes);
     int l = 0;
     for (; l + 8 <= n; l += 8) {
         const __m256 x = _mm256_add_ps(
@@ -240,21 +278,8 @@ __attribute__((target("avx2"))) static void sample_narrow_avx2(
         const __m256i yi = _mm256_sub_epi32(_mm256_cvttps_epi32(_mm256_add_ps(y, reach)), ireach);
         const __m256 ax = _mm256_sub_ps(x, _mm256_cvtepi32_ps(xi));
         const __m256 ay = _mm256_sub_ps(y, _mm256_cvtepi32_ps(yi));
-        const __m256i gx = _mm256_add_epi32(xi, vcu), gy = _mm256_add_epi32(yi, vcv);
-        const __m256i x0 = _mm256_max_epi32(_mm256_min_epi32(gx, wm), zero);
-        const __m256i x1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(gx, one), wm), zero);
-        const __m256i y0 = _mm256_max_epi32(_mm256_min_epi32(gy, hm), zero);
-        const __m256i y1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(gy, one), hm), zero);
-        const __m256i r0 = _mm256_mullo_epi32(y0, vw), r1 = _mm256_mullo_epi32(y1, vw);
-        const __m256i same = _mm256_cmpeq_epi32(x0, x1);
-        __m256 p00, p01, p10, p11;
-        gather_pair(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x0), vb), last, mask, bits, same,
-                    &p00, &p01);
-        gather_pair(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x0), vb), last, mask, bits, same,
-                    &p10, &p11);
-        const __m256 top = _mm256_add_ps(p00, _mm256_mul_ps(ax, _mm256_sub_ps(p01, p00)));
-        const __m256 bot = _mm256_add_ps(p10, _mm256_mul_ps(ax, _mm256_sub_ps(p11, p10)));
-        _mm256_storeu_ps(out + l, _mm256_add_ps(top, _mm256_mul_ps(ay, _mm256_sub_ps(bot, top))));
+        _mm256_storeu_ps(out + l, bilinear_narrow(img, &c, _mm256_add_epi32(xi, vcu),
+                                                  _mm256_add_epi32(yi, vcv), ax, ay));
     }
     if (l < n) {
         if (bytes == 1)
@@ -884,6 +909,21 @@ static PyObject *solve_rounds(PyObject *self, PyObject *args)
  * INTER_LINEAR and BORDER_CONSTANT 0, which OpenCV 5 computes in float from the exact
  * positions), integer images' samples rounded to the nearest integer (half to even) as remap
  * returns them in the image's own type. */
+/* A point's floor pixel and fractions, far and NaN points first clamped to a pixel or two
+ * outside the image (a NaN fails every comparison). */
+static inline void point_floor(float x, float y, int w, int h, int *xi, int *yi, float *ax,
+                               float *ay)
+{
+    x = x > -2.0f ? x : -2.0f;
+    x = x < (float)w + 1.0f ? x : (float)w + 1.0f;
+    y = y > -2.0f ? y : -2.0f;
+    y = y < (float)h + 1.0f ? y : (float)h + 1.0f;
+    *xi = (int)(x + 4.0f) - 4;
+    *yi = (int)(y + 4.0f) - 4;
+    *ax = x - (float)*xi;
+    *ay = y - (float)*yi;
+}
+
 #define POINT_SAMPLER(NAME, TYPE, ROUND) \
 SIMD static void NAME(const TYPE *restrict img, int w, int h, Py_ssize_t n, \
                       const float *restrict u, const float *restrict v, float *restrict out) \
@@ -891,13 +931,10 @@ SIMD static void NAME(const TYPE *restrict img, int w, int h, Py_ssize_t n, \
     /* All points as if inside (corners clamped into the image): branch-free, in SIMD. Far \
      * and NaN points are clamped to a pixel or two outside (a NaN fails every comparison). */ \
     for (Py_ssize_t i = 0; i < n; i++) { \
-        float x = u[i], y = v[i]; \
-        x = x > -2.0f ? x : -2.0f; \
-        x = x < (float)w + 1.0f ? x : (float)w + 1.0f; \
-        y = y > -2.0f ? y : -2.0f; \
-        y = y < (float)h + 1.0f ? y : (float)h + 1.0f; \
-        const int xi = (int)(x + 4.0f) - 4, yi = (int)(y + 4.0f) - 4; \
-        const float ax = x - (float)xi, ay = y - (float)yi; \
+        const float x = u[i], y = v[i]; \
+        int xi, yi; \
+        float ax, ay; \
+        point_floor(x, y, w, h, &xi, &yi, &ax, &ay); \
         int x0 = xi < 0 ? 0 : xi, x1 = xi + 1; \
         x0 = x0 < w - 1 ? x0 : w - 1; \
         x1 = x1 < 0 ? 0 : x1; \
@@ -913,14 +950,11 @@ SIMD static void NAME(const TYPE *restrict img, int w, int h, Py_ssize_t n, \
     } \
     /* Points with a corner outside again, those corners reading 0 (few: a scalar loop). */ \
     for (Py_ssize_t i = 0; i < n; i++) { \
-        float x = u[i], y = v[i]; \
+        const float x = u[i], y = v[i]; \
         if (x >= 0.0f && y >= 0.0f && x < (float)(w - 1) && y < (float)(h - 1)) continue; \
-        x = x > -2.0f ? x : -2.0f; \
-        x = x < (float)w + 1.0f ? x : (float)w + 1.0f; \
-        y = y > -2.0f ? y : -2.0f; \
-        y = y < (float)h + 1.0f ? y : (float)h + 1.0f; \
-        const int xi = (int)(x + 4.0f) - 4, yi = (int)(y + 4.0f) - 4; \
-        const float ax = x - (float)xi, ay = y - (float)yi; \
+        int xi, yi; \
+        float ax, ay; \
+        point_floor(x, y, w, h, &xi, &yi, &ax, &ay); \
         float p[4]; \
         for (int c = 0; c < 4; c++) { \
             const int px = xi + (c & 1), py = yi + (c >> 1); \
@@ -947,13 +981,8 @@ __attribute__((target("avx2"))) static void points_narrow_avx2(const void *img, 
     const __m256 lo = _mm256_set1_ps(-2.0f);
     const __m256 hix = _mm256_set1_ps((float)w + 1.0f), hiy = _mm256_set1_ps((float)h + 1.0f);
     const __m256 four = _mm256_set1_ps(4.0f);
-    const __m256i ifour = _mm256_set1_epi32(4), one = _mm256_set1_epi32(1);
-    const __m256i zero = _mm256_setzero_si256();
-    const __m256i wm = _mm256_set1_epi32(w - 1), hm = _mm256_set1_epi32(h - 1);
-    const __m256i vw = _mm256_set1_epi32(w), vb = _mm256_set1_epi32(bytes);
-    const __m256i last = _mm256_set1_epi32(w * h * bytes - 4);
-    const __m256i mask = _mm256_set1_epi32(bytes == 1 ? 0xFF : 0xFFFF);
-    const __m256i bits = _mm256_set1_epi32(8 * bytes);
+    const __m256i ifour = _mm256_set1_epi32(4);
+    const Narrow c = narrow_frame(w, h, bytes);
     Py_ssize_t i = 0;
     for (; i + 8 <= n; i += 8) {
         /* max with the point first: a NaN point becomes the bound. */
@@ -963,20 +992,7 @@ __attribute__((target("avx2"))) static void points_narrow_avx2(const void *img, 
         const __m256i yi = _mm256_sub_epi32(_mm256_cvttps_epi32(_mm256_add_ps(y, four)), ifour);
         const __m256 ax = _mm256_sub_ps(x, _mm256_cvtepi32_ps(xi));
         const __m256 ay = _mm256_sub_ps(y, _mm256_cvtepi32_ps(yi));
-        const __m256i x0 = _mm256_max_epi32(_mm256_min_epi32(xi, wm), zero);
-        const __m256i x1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(xi, one), wm), zero);
-        const __m256i y0 = _mm256_max_epi32(_mm256_min_epi32(yi, hm), zero);
-        const __m256i y1 = _mm256_max_epi32(_mm256_min_epi32(_mm256_add_epi32(yi, one), hm), zero);
-        const __m256i r0 = _mm256_mullo_epi32(y0, vw), r1 = _mm256_mullo_epi32(y1, vw);
-        const __m256i same = _mm256_cmpeq_epi32(x0, x1);
-        __m256 p00, p01, p10, p11;
-        gather_pair(img, _mm256_mullo_epi32(_mm256_add_epi32(r0, x0), vb), last, mask, bits, same,
-                    &p00, &p01);
-        gather_pair(img, _mm256_mullo_epi32(_mm256_add_epi32(r1, x0), vb), last, mask, bits, same,
-                    &p10, &p11);
-        const __m256 top = _mm256_add_ps(p00, _mm256_mul_ps(ax, _mm256_sub_ps(p01, p00)));
-        const __m256 bot = _mm256_add_ps(p10, _mm256_mul_ps(ax, _mm256_sub_ps(p11, p10)));
-        const __m256 val = _mm256_add_ps(top, _mm256_mul_ps(ay, _mm256_sub_ps(bot, top)));
+        const __m256 val = bilinear_narrow(img, &c, xi, yi, ax, ay);
         _mm256_storeu_ps(out + i, _mm256_round_ps(val, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC));
     }
     /* The rest, and every point near the border, by the portable loops. */
