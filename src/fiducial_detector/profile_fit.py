@@ -408,11 +408,12 @@ def _pass(
     if partial or measure_blur:
         lines, mean, mass, m2 = _sampled_lines(src, cur, n_lines, rho_range, cap, pol, measure_blur)
         good, t, typical, blur = _edge_terms(lines, mean, mass, m2, blur, cap, partial)
+        symmetric = _symmetric_window(cap, blur)
     else:
         # An edge printed all round at a known blur: its terms and sums from the kernel too.
         lines, full = _sampled_full_edge(src, cur, n_lines, rho_range, cap, pol, blur)
         good, t, typical, sums = full.good, full.t, full.typical, (full.normal, full.rhs)
-    symmetric = _symmetric_window(cap, blur)
+        symmetric = full.symmetric
     prior = None if tie is None else _tie(lines, cur, tie)
     noise_var = None
     if noise_std is not None and not measure_blur:
@@ -582,13 +583,15 @@ class _FullEdge:
     """What the kernel gives of an edge printed all round, beside its lines (see
     :func:`_edge_terms`): usable lines, their edge positions ``t`` (right-hand side of
     ``jac . delta = -t``, 0 where not usable), each fit's typical step height and the
-    least-squares sums over the usable lines (``normal`` (k, 5, 5), ``rhs`` (k, 5))."""
+    least-squares sums over the usable lines (``normal`` (k, 5, 5), ``rhs`` (k, 5)), and the
+    symmetric window's terms they were taken at."""
 
     good: NDArray[np.bool_]
     t: NDArray[np.float32]
     typical: NDArray[np.float64]
     normal: NDArray[np.float64]
     rhs: NDArray[np.float64]
+    symmetric: tuple[NDArray[np.float64], NDArray[np.float64]]  # :func:`_symmetric_window`
 
 
 def _sampled_lines(
@@ -671,6 +674,7 @@ def _kernel_pass(
             np.empty(k),
             np.empty((k, 5, 5)),
             np.empty((k, 5)),
+            (z0, v0),
         )
         good = full.good.view(np.uint8)
         edge_args = (blur64, z0, v0, good, full.t, full.typical, full.normal, full.rhs)
