@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 from . import _profile_kernel
 from .codebook import BITS, rotation_table
 from .design import FiducialDesign
+from .profile_fit import KERNEL_KINDS
 
 #: Samples per sector: angular offsets (fraction of a sector, about its middle) x radial offsets
 #: (fraction of the track width).
@@ -57,8 +58,6 @@ _CORE = 4  # the middle samples of a sector that give its value
 _RAD = np.array([0.25, 0.5, 0.75])
 _REF_ANGLES = 24
 _MAX_REMAP_ROWS = 30000
-#: Pixel types the kernel's point sampler reads (its ``kind`` codes).
-_KERNEL_KINDS = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1, np.dtype(np.float32): 2}
 #: Default smallest accepted contrast (white - black level), fraction of full scale.
 DEFAULT_MIN_CONTRAST = 0.06
 
@@ -257,7 +256,7 @@ def _sample_points(
     params: NDArray[np.float64],
 ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     """:func:`_sample` at the points of :func:`track_points` (arguments as there)."""
-    kind = _KERNEL_KINDS.get(image.dtype)
+    kind = KERNEL_KINDS.get(image.dtype)
     if kind is not None and image.ndim == 2 and image.flags.c_contiguous and min(image.shape) > 1:
         # The kernel makes each candidate's points as :func:`_track_maps` does (float32,
         # relative to the whole pixel nearest the centre) while sampling the previous one's.

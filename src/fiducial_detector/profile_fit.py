@@ -136,8 +136,8 @@ _CONVERGED_PX = 0.05
 _FOLD = 4096
 #: Fits per padded block.
 _BLOCK = 512
-#: Pixel types the kernel samples as they are (its ``kind`` codes).
-_KINDS = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1, np.dtype(np.float32): 2}
+#: Pixel types the kernel samples as they are (its ``kind`` codes), for every caller of it.
+KERNEL_KINDS = {np.dtype(np.uint8): 0, np.dtype(np.uint16): 1, np.dtype(np.float32): 2}
 #: An image the kernel samples (:func:`sampled_image`).
 SampledImage = NDArray[np.uint8] | NDArray[np.uint16] | NDArray[np.float32]
 _INV_SQRT_2PI = float(1.0 / np.sqrt(2.0 * np.pi))
@@ -239,7 +239,7 @@ def refine_by_profiles(
 def sampled_image(image: NDArray[Any]) -> SampledImage:
     """``image`` as the kernel samples it: C-contiguous uint8, uint16 or float32 pixels, the
     image itself where it is one (no copy of a frame), else one float32 copy."""
-    if image.dtype in _KINDS:
+    if image.dtype in KERNEL_KINDS:
         return np.ascontiguousarray(image)
     return np.ascontiguousarray(image, dtype=np.float32)
 
@@ -406,12 +406,15 @@ def _pass(
     k = cur.shape[0]
     sums = None
     if partial or measure_blur:
-        lines, mean, mass, m2 = _sampled_lines(src, cur, n_lines, rho_range, cap, pol, measure_blur)
+        lines, mean, mass, m2, _ = _sampled_lines(
+            src, cur, n_lines, rho_range, cap, pol, measure_blur
+        )
         good, t, typical, blur = _edge_terms(lines, mean, mass, m2, blur, cap, partial)
         symmetric = _symmetric_window(cap, blur)
     else:
         # An edge printed all round at a known blur: its terms and sums from the kernel too.
-        lines, full = _sampled_full_edge(src, cur, n_lines, rho_range, cap, pol, blur)
+        lines, _, _, _, full = _sampled_lines(src, cur, n_lines, rho_range, cap, pol, False, blur)
+        assert full is not None
         good, t, typical, sums = full.good, full.t, full.typical, (full.normal, full.rhs)
         symmetric = full.symmetric
     prior = None if tie is None else _tie(lines, cur, tie)
@@ -455,7 +458,7 @@ def _edge_terms(
     right-hand side ``t`` of ``jac . delta = -t``, each fit's typical step height, and the blur
     (measured here where ``m2`` is given: the coarse pass). ``partial``: the lines of a partial
     edge (see :func:`refine_by_profiles_sampled`). In numpy: the reference of the kernel's
-    :func:`_sampled_full_edge`, and what partial edges and the coarse pass use."""
+    :func:`_sampled_lines` with a blur, and what partial edges and the coarse pass use."""
     dtype = np.float32
     lower, upper = lines.lower, lines.upper
     box = lines.step**2 / 12.0  # the forward differences' box
@@ -602,50 +605,7 @@ def _sampled_lines(
     cap: NDArray[np.float64],
     polarity: NDArray[np.float64],
     second_moment: bool,
-) -> tuple[
-    _Lines,
-    NDArray[np.floating[Any]],
-    NDArray[np.floating[Any]],
-    NDArray[np.floating[Any]] | None,
-]:
-    """The lines of one pass on a block of ellipses and, along them, what :func:`_centroids`
-    gives, from the compiled kernel (:mod:`._profile_kernel`): the arithmetic of :func:`_lines`
-    then :func:`_centroids` (their numpy reference), fit by fit while its pixels are in cache,
-    in SIMD, on the image's own pixels (:func:`sampled_image`), with exact bilinear samples
-    (``cv2.remap`` rounds their positions to 1/32 px). Padding lines have no jacobian (zeros)
-    and no centroid (NaN)."""
-    lines, mean, mass, m2, _ = _kernel_pass(
-        src, ellipses, count, rho_range, cap, polarity, second_moment, None
-    )
-    return lines, mean, mass, m2
-
-
-def _sampled_full_edge(
-    src: SampledImage,
-    ellipses: NDArray[np.float64],
-    count: NDArray[np.intp],
-    rho_range: tuple[float, float],
-    cap: NDArray[np.float64],
-    polarity: NDArray[np.float64],
-    blur: NDArray[np.float64],
-) -> tuple[_Lines, _FullEdge]:
-    """:func:`_sampled_lines` for an edge printed all round at a known ``blur``, with
-    :func:`_edge_terms` and the least-squares sums taken by the kernel too, each fit's while
-    its lines are in cache."""
-    lines, _, _, _, full = _kernel_pass(src, ellipses, count, rho_range, cap, polarity, False, blur)
-    assert full is not None
-    return lines, full
-
-
-def _kernel_pass(
-    src: SampledImage,
-    ellipses: NDArray[np.float64],
-    count: NDArray[np.intp],
-    rho_range: tuple[float, float],
-    cap: NDArray[np.float64],
-    polarity: NDArray[np.float64],
-    second_moment: bool,
-    blur: NDArray[np.float64] | None,
+    blur: NDArray[np.float64] | None = None,
 ) -> tuple[
     _Lines,
     NDArray[np.floating[Any]],
@@ -653,8 +613,14 @@ def _kernel_pass(
     NDArray[np.floating[Any]] | None,
     _FullEdge | None,
 ]:
-    """One call of the kernel's ``sample_lines`` (with a full edge's terms where ``blur`` is
-    given): see :func:`_sampled_lines` and :func:`_sampled_full_edge`."""
+    """The lines of one pass on a block of ellipses and, along them, what :func:`_centroids`
+    gives, from the compiled kernel (:mod:`._profile_kernel`): the arithmetic of :func:`_lines`
+    then :func:`_centroids` (their numpy reference), fit by fit while its pixels are in cache,
+    in SIMD, on the image's own pixels (:func:`sampled_image`), with exact bilinear samples
+    (``cv2.remap`` rounds their positions to 1/32 px). Padding lines have no jacobian (zeros)
+    and no centroid (NaN). With ``blur`` (an edge printed all round, at that blur) the kernel
+    also takes :func:`_edge_terms` and the least-squares sums, each fit's while its lines are in
+    cache: the :class:`_FullEdge`, None without."""
     k = ellipses.shape[0]
     m = int(count.max())
     f32 = np.float32
@@ -680,7 +646,7 @@ def _kernel_pass(
         edge_args = (blur64, z0, v0, good, full.t, full.typical, full.normal, full.rhs)
     _profile_kernel.sample_lines(
         src,
-        _KINDS[src.dtype],
+        KERNEL_KINDS[src.dtype],
         src.shape[0],
         src.shape[1],
         np.ascontiguousarray(ellipses, dtype=np.float64),
@@ -953,7 +919,7 @@ def _solve(
     or the residuals' variance less the tolerated misfit (:data:`MISFIT_TOLERANCE_PX`) where
     that is larger; ``correlation``: the lines' :func:`correlation_factor`, which widens the
     covariance; ``sums``: the first round's ``normal`` and ``rhs``, where the kernel took them
-    with the lines (:func:`_sampled_full_edge`). The returned RMS residual is the residuals'
+    with the lines (:func:`_sampled_lines` with a blur). The returned RMS residual is the residuals'
     either way."""
     k, _, m = jac.shape
     jac32 = np.ascontiguousarray(jac, dtype=np.float32)

@@ -49,7 +49,7 @@ def test_lines_and_moments_match_the_numpy_reference(second: bool) -> None:
     image = scene.image
     ellipses = np.vstack([_ellipses(rng, 60, image.shape), true_ellipse(scene, 0)[None]])
     (ref, ref_mean, ref_mass, ref_m2), (count, cap, pol) = _reference(image, ellipses, second)
-    lines, mean, mass, m2 = profile_fit._sampled_lines(
+    lines, mean, mass, m2, _ = profile_fit._sampled_lines(
         sampled_image(image), ellipses, count, RHO, cap, pol, second
     )
     valid = ref.valid
@@ -95,11 +95,11 @@ def test_pixel_types_sample_alike() -> None:
     ]
     assert sampled_image(image).dtype == np.uint8
     assert sampled_image(image.astype(np.float64)).dtype == np.float32
-    lines, mean, mass, m2 = results[0]
+    lines, mean, mass, m2, _ = results[0]
     valid = lines.valid
     usable = valid & (np.abs(mass) > 5.0)
     assert usable.sum() > 0.3 * valid.sum()
-    for scale, (_, mean_b, mass_b, m2_b) in zip((1, 1, 257), results[1:], strict=True):
+    for scale, (_, mean_b, mass_b, m2_b, _) in zip((1, 1, 257), results[1:], strict=True):
         np.testing.assert_allclose(mass_b[valid], scale * mass[valid], rtol=1e-5, atol=1e-3 * scale)
         np.testing.assert_allclose(mean_b[usable], mean[usable], atol=1e-4)
         np.testing.assert_allclose(m2_b[usable], m2[usable], atol=1e-3)
@@ -142,8 +142,10 @@ def test_full_edge_terms_match_the_numpy_reference() -> None:
     pol = np.ones(len(ellipses))
     blur = rng.uniform(0.6, 0.9, len(ellipses))
     src = sampled_image(scene.image)
-    lines, mean, mass, _ = profile_fit._sampled_lines(src, ellipses, count, RHO, cap, pol, False)
-    fused, full = profile_fit._sampled_full_edge(src, ellipses, count, RHO, cap, pol, blur)
+    lines, mean, mass, _, _ = profile_fit._sampled_lines(src, ellipses, count, RHO, cap, pol, False)
+    fused, _, _, _, full = profile_fit._sampled_lines(
+        src, ellipses, count, RHO, cap, pol, False, blur
+    )
     for name in ("valid", "jac", "kappa", "lower", "upper", "step"):
         np.testing.assert_array_equal(getattr(fused, name), getattr(lines, name), err_msg=name)
     ref_good, ref_t, ref_typical, _ = profile_fit._edge_terms(
@@ -258,7 +260,9 @@ def test_fits_the_samples_cannot_reach_get_no_lines() -> None:
     )
     count = np.full(len(ellipses), 64)
     cap, pol = np.full(len(ellipses), 3.0), np.ones(len(ellipses))
-    lines, mean, mass, _ = profile_fit._sampled_lines(image, ellipses, count, RHO, cap, pol, False)
+    lines, mean, mass, _, _ = profile_fit._sampled_lines(
+        image, ellipses, count, RHO, cap, pol, False
+    )
     assert np.all(lines.valid[[0, 4]]) and not np.any(lines.valid[1:4])
     assert np.all(np.isnan(mean[1:4])) and np.all(mass[1:4] == 0.0)
     np.testing.assert_array_equal(mean[0], mean[4])
