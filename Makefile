@@ -10,9 +10,9 @@ STAMP   := $(VENV)/.installed
 
 setup: $(STAMP)
 
-# Reinstall only when the project's declared dependencies or its one compiled kernel change; the
-# package itself is editable (the kernel is built in place, beside its module).
-$(STAMP): pyproject.toml setup.py src/fiducial_detector/_profile_kernel.c
+# Reinstall only when the project's declared dependencies or its compiled kernels change; the
+# package itself is editable (the kernels are built in place, beside their modules).
+$(STAMP): pyproject.toml setup.py src/fiducial_detector/_profile_kernel.c src/fiducial_detector/_border_kernel.c
 	test -x $(VPY) || $(PY) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
 	$(VPY) -m pip install -q -e ".[dev]"
@@ -40,4 +40,4 @@ bags: $(STAMP)
 	$(VENV)/bin/armourcam make-bags --out bags
 
 clean:
-	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache build src/fiducial_detector/_profile_kernel*.so
+	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache build src/fiducial_detector/_*_kernel*.so

@@ -1,7 +1,9 @@
-"""The one compiled part of armourcam: the profile fit's kernel (Python.h only, no numpy headers).
+"""The compiled parts of armourcam: the detector's two kernels (Python.h only, no numpy headers),
+the profile fit's and the boundary tracer's.
 
-Everything else is declared in ``pyproject.toml``; ``pip install -e .`` builds the kernel in place,
-beside :mod:`fiducial_detector.profile_fit`, with the gcc and Python headers every machine here has.
+Everything else is declared in ``pyproject.toml``; ``pip install -e .`` builds the kernels in place,
+beside :mod:`fiducial_detector.profile_fit` and :mod:`fiducial_detector.components`, with the gcc
+and Python headers every machine here has.
 """
 
 from setuptools import Extension, setup
@@ -12,6 +14,11 @@ setup(
             "fiducial_detector._profile_kernel",
             sources=["src/fiducial_detector/_profile_kernel.c"],
             extra_compile_args=["-O3", "-fno-math-errno", "-fno-trapping-math"],
-        )
+        ),
+        Extension(
+            "fiducial_detector._border_kernel",
+            sources=["src/fiducial_detector/_border_kernel.c"],
+            extra_compile_args=["-O3"],
+        ),
     ]
 )

@@ -1,9 +1,12 @@
 """Component boundaries of the thresholded image (paper section 3, step 2).
 
-The outer boundary of every black connected component is traced once at full resolution (OpenCV's
-Suzuki-Abe border following, a contour-tracing labeller in the family of Chang et al.'s). Each
-boundary is reduced to the ellipse with the same area moments as the polygon it encloses, and
-everything after that is vectorised over all boundaries.
+The outer boundary of every black connected component is traced once (Suzuki & Abe's border
+following, as in OpenCV's ``findContours``, a contour-tracing labeller in the family of Chang et
+al.'s), by a compiled kernel (:mod:`._border_kernel`) that sums each outer boundary's moments on
+the way round: ``findContours`` would hand every border, holes included, to Python as an array of
+its own, thousands of them on a frame of fiducials. Each boundary is reduced to the ellipse with
+the same area moments as the polygon it encloses, and everything after that is vectorised over
+all boundaries.
 
 Thin components that touch only at pixel corners (a steeply slanted ``dot`` design's dot and a
 code sector beside it) are also split into their 4-connected parts (:func:`_diagonal_parts`).
@@ -23,6 +26,8 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+
+from . import _border_kernel
 
 #: Paper step 2: boundaries shorter than this (pixels) are discarded.
 MIN_BOUNDARY_PX = 10.0
@@ -84,6 +89,44 @@ class Boundaries:
         )
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class _OuterBorders:
+    """The outer border of every black component, as :func:`_outer_borders` traces them.
+
+    ``sums`` rows are the six unscaled edge sums of :func:`_polygon_moments` and the length in
+    unit steps; border ``i``'s chain, compressed to the ends of its straight runs, is
+    ``points[starts[i]:starts[i + 1]]``, in reverse order of ``sums`` (see ``__getitem__``).
+    """
+
+    sums: NDArray[np.float64]
+    points: NDArray[np.int32]
+    starts: NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return int(self.sums.shape[0])
+
+    def __getitem__(self, i: int) -> NDArray[np.int32]:
+        """Border ``i``'s chain, an ``(n, 1, 2)`` array of ``(u, v)`` as ``cv2.findContours``
+        gives it."""
+        k = len(self) - 1 - i
+        return self.points[self.starts[k] : self.starts[k + 1]].reshape(-1, 1, 2)
+
+
+def _outer_borders(binary: NDArray[np.uint8]) -> _OuterBorders:
+    """Outer borders of the non-zero components of ``binary``, traced by the compiled kernel
+    (:mod:`._border_kernel`): the same chains, in the same order, as the top level of
+    ``cv2.findContours(binary, RETR_CCOMP, CHAIN_APPROX_SIMPLE)`` (OpenCV lists the borders in
+    the reverse of their raster order; the kernel in raster order), with their moment sums."""
+    image = np.ascontiguousarray(binary, dtype=np.uint8)
+    h, w = image.shape
+    sums, points, starts = _border_kernel.outer_borders(image, h, w)
+    return _OuterBorders(
+        np.frombuffer(sums, dtype=np.float64).reshape(-1, 7)[::-1],
+        np.frombuffer(points, dtype=np.int32).reshape(-1, 2),
+        np.frombuffer(starts, dtype=np.int64),
+    )
+
+
 def outer_boundaries(
     binary: NDArray[np.uint8], *, max_extent: float, min_hull_extent: float = 0.0
 ) -> Boundaries:
@@ -108,22 +151,16 @@ def outer_boundaries(
         Boundaries at least ``MIN_BOUNDARY_PX`` long (by pixel count and by their ellipse's
         perimeter) and at most ``max_extent`` across.
     """
-    # RETR_CCOMP puts the outer boundary of every component at the top level, including
-    # components that sit inside another one's hole. Chains compressed to their straight runs
-    # (CHAIN_APPROX_SIMPLE) enclose the same polygon with about half the points; a boundary's
-    # length (its pixel count) is then the number of unit steps along its runs.
-    contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
-    if hierarchy is None:
+    borders = _outer_borders(binary)
+    if len(borders) == 0:
         return _empty()
-    kept = [contours[i] for i in np.nonzero(hierarchy[0][:, 3] < 0)[0].tolist()]
-    moments, length = _polygon_moments(kept)
-    ell = _moment_ellipses(moments)
-    keep = (length >= MIN_BOUNDARY_PX) & _size_ok(ell, max_extent)
+    ell = _moment_ellipses(_moments(borders.sums[:, :6].T))
+    keep = (borders.sums[:, 6] >= MIN_BOUNDARY_PX) & _size_ok(ell, max_extent)
     split = keep & (ell[:, 6] < SPLIT_BELOW) & (ell[:, 3] <= SPLIT_MAX_MINOR_PX)
-    parts = _diagonal_parts(binary, kept, np.nonzero(split & (ell[:, 5] >= 2 * SPLIT_MIN_AREA))[0])
+    which = np.nonzero(split & (ell[:, 5] >= 2 * SPLIT_MIN_AREA))[0].tolist()
+    parts = _diagonal_parts(binary, [borders[i] for i in which])
     if parts:
         # The merged boundary stays too (a thin ring may pass through such a contact itself).
-        kept += parts
         moments, length = _polygon_moments(parts)
         more = _moment_ellipses(moments)
         ell = np.concatenate([ell, more])
@@ -133,8 +170,10 @@ def outer_boundaries(
     )[0].tolist()
     if retry:
         # Broken rings: the convex hull's ellipse, accepted where the boundary hugs its outer part.
-        hull = _moment_ellipses(_polygon_moments([cv2.convexHull(kept[i]) for i in retry])[0])
-        frac = _on_ellipse([kept[i] for i in retry], hull)
+        n = len(borders)
+        chains = [borders[i] if i < n else parts[i - n] for i in retry]
+        hull = _moment_ellipses(_polygon_moments([cv2.convexHull(c) for c in chains])[0])
+        frac = _on_ellipse(chains, hull)
         good = (hull[:, 5] > 0) & (frac >= HULL_MIN_ON_ELLIPSE)
         hull[:, 6] = 1.0  # the hull's own ellipticity says nothing; the point test passed
         ell[np.array(retry)[good]] = hull[good]
@@ -155,11 +194,9 @@ SPLIT_MAX_MINOR_PX = 6.0
 SPLIT_MIN_AREA = 4
 
 
-def _diagonal_parts(
-    binary: NDArray[np.uint8], polygons: list[NDArray[Any]], which: NDArray[np.intp]
-) -> list[NDArray[Any]]:
-    """Outer boundaries of the 4-connected parts of components ``which`` that touch each other
-    only diagonally.
+def _diagonal_parts(binary: NDArray[np.uint8], chains: list[NDArray[Any]]) -> list[NDArray[Any]]:
+    """Outer boundaries of the 4-connected parts of the components bounded by ``chains`` that
+    touch each other only diagonally.
 
     Border following joins black pixels through their corners (8-connectivity). Two dark
     strokes running diagonally one white pixel apart then touch at a pixel corner and are
@@ -168,7 +205,7 @@ def _diagonal_parts(
     paper), whose merged boundary is neither elliptical nor centred on the dot. A contact that
     joins two parts into one outer boundary lies on that boundary (both of its pixels have
     white 4-neighbours outside), so only boundary pixels are tested, vectorised over all
-    boundaries ``which``; the few components with a contact are labelled again with
+    boundaries; the few components with a contact are labelled again with
     4-connectivity in their bounding box.
 
     Returns
@@ -177,9 +214,8 @@ def _diagonal_parts(
         Compressed outer chains ``(u, v)`` of the parts (at least two per split component, each
         at least :data:`SPLIT_MIN_AREA` pixels), as ``cv2.findContours`` gives them.
     """
-    if which.size == 0:
+    if not chains:
         return []
-    chains = [polygons[i] for i in which.tolist()]
     fu, fv, idx, _ = _chain_pixels(chains)
     u, v = fu.astype(np.intp), fv.astype(np.intp)
     h, w = binary.shape
@@ -283,8 +319,14 @@ def _polygon_moments(
     term += np.multiply(xp, yp, out=tmp)
     term += np.multiply(x, y, out=tmp)
     sums[4] = np.add.reduceat(np.multiply(term, cross, out=term), starts)
-    degenerate = np.abs(sums[0]) <= np.finfo(np.float32).eps
-    sums *= np.where(sums[0] < 0, -1.0, 1.0)  # either orientation
+    return _moments(sums), length
+
+
+def _moments(edge_sums: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rows ``(m00, m10, m01, mu20, mu11, mu02)`` (see :func:`_polygon_moments`) from the six
+    unscaled Green's-theorem edge sums of each polygon, ``edge_sums`` of shape (6, n)."""
+    degenerate = np.abs(edge_sums[0]) <= np.finfo(np.float32).eps
+    sums = edge_sums * np.where(edge_sums[0] < 0, -1.0, 1.0)  # either orientation
     sums *= _MOMENT_SCALE[:, None]
     m00, m10, m01, m20, m11, m02 = sums
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -292,7 +334,7 @@ def _polygon_moments(
         cu, cv = m10 * inv, m01 * inv
         rows = np.column_stack([m00, m10, m01, m20 - m10 * cu, m11 - m10 * cv, m02 - m01 * cv])
     rows[degenerate] = 0.0
-    return rows, length
+    return rows
 
 
 #: Boundaries less elliptical than this get the convex-hull retry.

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from binary_scenes import random_binary
 
 from fiducial_detector.components import (
     _diagonal_parts,
@@ -47,26 +48,12 @@ def test_broken_ring_recovered_by_hull_and_size_limits() -> None:
     assert len(outer_boundaries(speck, max_extent=100)) == 0
 
 
-def _random_binary(rng: np.random.Generator, shape: tuple[int, int] = (90, 120)) -> np.ndarray:
-    """Speckle, lines, filled and hollow ellipses: every kind of boundary the tracer meets."""
-    img = (rng.random(shape) < 0.03).astype(np.uint8) * 255
-    for _ in range(6):
-        c = (int(rng.integers(10, shape[1] - 10)), int(rng.integers(10, shape[0] - 10)))
-        ax = (int(rng.integers(2, 25)), int(rng.integers(1, 15)))
-        cv2.ellipse(
-            img, c, ax, float(rng.uniform(0, 180)), 0, 360, 255, int(rng.choice([-1, 1, 2]))
-        )
-    p, q = rng.integers(0, min(shape), (2, 2))
-    cv2.line(img, (int(p[0]), int(p[1])), (int(q[0]), int(q[1])), 255, 1)
-    return img
-
-
 def test_vectorised_moments_equal_opencv_bit_for_bit() -> None:
     """Green's theorem over compressed chains gives cv2.moments of the full chains exactly, and
     the chain length (unit steps) equals the full chain's point count."""
     rng = np.random.default_rng(7)
     for _ in range(20):
-        img = _random_binary(rng)
+        img = random_binary(rng)
         full, _ = cv2.findContours(img, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
         compressed, _ = cv2.findContours(img, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
         rows, length = _polygon_moments(list(compressed))
@@ -79,7 +66,7 @@ def test_vectorised_moments_equal_opencv_bit_for_bit() -> None:
 def test_on_ellipse_counts_every_pixel_of_compressed_runs() -> None:
     """The hull retry's point test sees the same pixels from compressed chains as from full ones."""
     rng = np.random.default_rng(8)
-    img = _random_binary(rng, (120, 160))
+    img = random_binary(rng, (120, 160))
     full, _ = cv2.findContours(img, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
     compressed, _ = cv2.findContours(img, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
     rows = np.zeros((len(full), 7))
@@ -129,10 +116,10 @@ def test_diagonal_parts_are_the_four_connected_components() -> None:
     rng = np.random.default_rng(9)
     total = 0
     for _ in range(10):
-        img = _random_binary(rng)
+        img = random_binary(rng)
         contours, hierarchy = cv2.findContours(img, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
         outer = [c for c, h in zip(contours, hierarchy[0], strict=True) if h[3] < 0]
-        parts = _diagonal_parts(img, outer, np.arange(len(outer)))
+        parts = _diagonal_parts(img, outer)
         _, labels = cv2.connectedComponents(img, connectivity=4)
         for part in parts:
             p = part.reshape(-1, 2)
@@ -148,7 +135,7 @@ def test_diagonal_parts_are_the_four_connected_components() -> None:
     apart = _ellipse_mask((60, 80), (20.0, 30.0), (8.0, 3.0), 30.0)
     apart |= _ellipse_mask((60, 80), (50.0, 30.0), (8.0, 3.0), 30.0)
     contours, _ = cv2.findContours(apart, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    assert _diagonal_parts(apart, list(contours), np.arange(len(contours))) == []
+    assert _diagonal_parts(apart, list(contours)) == []
 
 
 def test_boundaries_on_a_reduced_image_are_enlarged_to_full_pixels() -> None:
