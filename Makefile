@@ -12,7 +12,7 @@ setup: $(STAMP)
 
 # Reinstall only when the project's declared dependencies or its compiled kernels change; the
 # package itself is editable (the kernels are built in place, beside their modules).
-$(STAMP): pyproject.toml setup.py src/fiducial_detector/_profile_kernel.c src/fiducial_detector/_border_kernel.c
+$(STAMP): pyproject.toml setup.py $(wildcard src/fiducial_detector/_*_kernel.c)
 	test -x $(VPY) || $(PY) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
 	$(VPY) -m pip install -q -e ".[dev]"
