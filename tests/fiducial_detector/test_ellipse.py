@@ -18,6 +18,7 @@ from armourcam.render import (
 )
 from fiducial_detector.design import get_design
 from fiducial_detector.ellipse import (
+    _median,
     ellipse_from_conic,
     estimate_noise,
     fit_ellipse,
@@ -286,6 +287,19 @@ def test_noise_estimate(noise: float) -> None:
     """The image-noise estimate that scales the covariance is within 10 % of the truth."""
     scene = _scene("ring", 60, 30, 0.5, noise, seed=6)
     assert estimate_noise(scene.image) == pytest.approx(noise * 255, rel=0.1)
+
+
+def test_median_by_counting_is_numpys() -> None:
+    """The noise estimate's median of an integer image's responses, by counting, is
+    ``np.median``'s to the bit: odd and even counts, heavy ties, one value, a long tail."""
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 10, 11, 999, 1000, 36_000):
+        for spread in (0, 2, 40, 4080):
+            values = np.abs(rng.integers(-spread, spread + 1, n)).astype(np.float32)
+            values[: n // 7] = 4080.0
+            assert _median(values, integral=True) == float(np.median(values))
+    fractional = rng.random(101).astype(np.float32)
+    assert _median(fractional, integral=False) == float(np.median(fractional))
 
 
 def test_polarity_vote_picks_the_seeded_edge_of_a_thin_annulus() -> None:
