@@ -63,7 +63,7 @@ from .profile_fit import (
     sampled_image,
 )
 from .threshold import DEFAULT_T, block_means, bradley_threshold, default_window
-from .types import Ellipse, FiducialDetection
+from .types import Ellipse, FiducialDetection, ellipses_from_rows
 
 DesignChoice = Literal["ring", "dot", "any"]
 
@@ -1331,15 +1331,14 @@ def _ellipses(
     idx = np.arange(len(fits)) if rows is None else rows
     good = fits.ok[idx] if keep is None else fits.ok[idx] & keep
     # Python scalars taken out of the arrays in one call each (per-element indexing of numpy
-    # arrays costs more than building the Ellipse), the covariances as views by iteration, and
-    # the fields passed by position (keywords cost a quarter of the whole).
-    params = fits.params[idx].tolist()
-    chi = fits.chi[idx].tolist()
-    cov = list(fits.covariance[idx])
-    return [
-        Ellipse((u, v), a, b, angle, cv, radius, c) if g else None
-        for g, (u, v, a, b, angle), c, cv in zip(good.tolist(), params, chi, cov, strict=True)
-    ]
+    # arrays costs more than building the Ellipse), the covariances as views by iteration.
+    return ellipses_from_rows(
+        good.tolist(),
+        fits.params[idx].tolist(),
+        list(fits.covariance[idx]),
+        radius,
+        fits.chi[idx].tolist(),
+    )
 
 
 def _parameters(e: Ellipse) -> tuple[float, float, float, float, float]:

@@ -6,7 +6,7 @@ coordinates (OpenCV's convention); the top-left pixel covers ``[-0.5, 0.5] x [-0
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,6 +59,47 @@ class Ellipse:
         return conic_from_parameters(
             self.center_px[0], self.center_px[1], self.semi_major, self.semi_minor, self.angle
         )
+
+
+# The slots' setters in field order, once: ellipses_from_rows sets an Ellipse's fields through
+# them (a field added to Ellipse makes its unpacking there fail, loudly).
+_ELLIPSE_SETTERS = tuple(getattr(Ellipse, f.name).__set__ for f in fields(Ellipse))
+
+
+def ellipses_from_rows(
+    good: list[bool],
+    params: list[list[float]],
+    covariance: list[NDArray[np.float64]],
+    radius: float,
+    rms_residual: list[float],
+) -> list[Ellipse | None]:
+    """``Ellipse((u, v), a, b, angle, covariance, radius, rms)`` for each row ``(u, v, a, b,
+    angle)`` of ``params`` where ``good``, None elsewhere (``systematic_px`` 0).
+
+    The same objects the constructor makes, at about half its cost: a frame's 1,600 fitted
+    circles took 2 ms through the frozen dataclass' ``__init__`` (a named ``object.__setattr__``
+    per field), here each field goes straight through its slot's setter.
+    """
+    new = object.__new__
+    s0, s1, s2, s3, s4, s5, s6, s7 = _ELLIPSE_SETTERS
+    out: list[Ellipse | None] = []
+    for g, (u, v, a, b, angle), cov, rms in zip(
+        good, params, covariance, rms_residual, strict=True
+    ):
+        if not g:
+            out.append(None)
+            continue
+        e = new(Ellipse)
+        s0(e, (u, v))
+        s1(e, a)
+        s2(e, b)
+        s3(e, angle)
+        s4(e, cov)
+        s5(e, radius)
+        s6(e, rms)
+        s7(e, 0.0)
+        out.append(e)
+    return out
 
 
 def conic_from_parameters(
