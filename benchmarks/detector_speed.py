@@ -205,9 +205,11 @@ def main(argv: list[str] | None = None) -> int:
         from pupil_apriltags import Detector
     except ImportError:  # pragma: no cover - dev extra not installed
         Detector = None
+    apriltags: list[Any] = []
     if Detector is not None:
         for decimate in (1.0, 2.0):
             det = Detector(families="tag36h11", nthreads=1, quad_decimate=decimate)
+            apriltags.append(det)
             contenders.append(
                 Contender(
                     f"AprilTag 3, quad_decimate {decimate:.0f}",
@@ -262,7 +264,26 @@ def main(argv: list[str] | None = None) -> int:
         for label, ms in parts:
             print(f"  {label:52s} {ms:8.1f}")
     print("\ntarget: <= 50 ms per frame, at least twice as fast as AprilTag 3 at quad_decimate 2")
+    for det in apriltags:
+        release_apriltag(det)
     return 0
+
+
+def release_apriltag(det: Any) -> None:
+    """Free a ``pupil_apriltags.Detector`` in the order its C library needs: the detector, then
+    its tag families. The binding's own ``__del__`` frees the families first, and the detector's
+    destructor then reads them (pupil-labs/apriltags#46, fixed so in duckietown's fork): a
+    segmentation fault at exit whenever the freed memory has been reused or returned (4 runs in
+    6 here, depending on the heap's layout)."""
+    if getattr(det, "tag_detector_ptr", None) is None:
+        return
+    det.libc.apriltag_detector_destroy.restype = None
+    det.libc.apriltag_detector_destroy(det.tag_detector_ptr)
+    for family, tf in det.tag_families.items():
+        destroy = getattr(det.libc, f"{family}_destroy")
+        destroy.restype = None
+        destroy(tf)
+    det.tag_detector_ptr = None  # its __del__ then frees nothing
 
 
 if __name__ == "__main__":
