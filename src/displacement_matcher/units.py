@@ -941,6 +941,14 @@ def unit_motions(
     }
     appeared = result.by_label("appeared")
     taken: set[int] = set()
+    if owner_codes is None and template is not None and normals:
+        # A lone pair reading as a turn-over that another unit which lost every face would read
+        # the same way, nearly as near, measures neither: its face is left to no one.
+        for n in _ambiguous_overturns(result, unit_list, pairs_of, has_same, template):
+            (k,) = pairs_of[n]
+            taken.add(cur_of[n].pop())
+            pairs_of[n].remove(k)
+            vanished_of[n] += 1
     # Faces still seen in place, for both unit-level rules below (found once).
     shown: dict[int, int] = {}
     if owner_codes is None and template is not None and (normals or template.positions_mm):
@@ -1184,6 +1192,61 @@ def opposed_faces(template: UnitSpec | None, code: int, others: Any) -> bool:
     )
 
 
+#: :func:`_ambiguous_overturns`: another lost unit this much farther (or less) from the face
+#: than the pair's own distance reads the turn-over as well.
+AMBIGUOUS_OVERTURN_RATIO = 1.2
+
+
+def _ambiguous_overturns(
+    result: MatchResult,
+    unit_list: Sequence[tuple[str, list[int]]],
+    pairs_of: Mapping[int, list[int]],
+    has_same: set[int],
+    template: UnitSpec,
+) -> list[int]:
+    """Units whose only evidence is one cross-code pair reading as a turn-over (its current
+    face's template normal opposite the unit's old faces) that another unit which lost every
+    face would read the same way from at most :data:`AMBIGUOUS_OVERTURN_RATIO` times the
+    pair's distance.
+
+    Two neighbours each seen through one face before, neither of them after, and one face
+    opposite to both now shown between them: one of them turned over, the other is hidden
+    behind it, and the matching's cost cannot tell which (30 dolos-field seeds: a still unit
+    counted overturned at 21.6 mm, the unit that turned over 22.7 mm away). A damage count
+    should not rest on that: neither unit is measured by the face.
+    """
+    base, cur = result.baseline, result.current
+    lost = [m for m, ks in pairs_of.items() if not ks and unit_list[m][1]]
+    out: list[int] = []
+    for n, ks in pairs_of.items():
+        if len(ks) != 1 or n in has_same:
+            continue
+        d = result.displacements[ks[0]]
+        if d.label != "cross_code" or d.code_after is None or d.after_mm is None:
+            continue
+        code = int(d.code_after)
+        if not opposed_faces(template, code, {int(base[i].code) for i in unit_list[n][1]}):
+            continue
+        reach = AMBIGUOUS_OVERTURN_RATIO * float(d.distance_mm or 0.0)
+        alone = [
+            e.current_index for e in result.by_label("appeared") if e.current_index is not None
+        ]
+        for m in lost:
+            ix = unit_list[m][1]
+            if not opposed_faces(template, code, {int(base[i].code) for i in ix}):
+                continue
+            pos = np.array([base[i].position_mm for i in ix], dtype=np.float64)
+            if float(np.min(np.linalg.norm(pos - d.after_mm, axis=1))) > reach:
+                continue
+            # A unit showing now, where it was, a face it hid then (one matched to nothing) did
+            # not turn over.
+            faces = [base[i] for i in ix]
+            if next(faces_shown_in_place(faces, cur, alone, template), None) is None:
+                out.append(n)
+                break
+    return out
+
+
 def _overturn_evidence(
     appeared: Sequence[Any],
     unit_list: Sequence[tuple[str, list[int]]],
@@ -1245,6 +1308,24 @@ def _overturn_evidence(
             dist = float(np.min(np.linalg.norm(pos - d.after_mm, axis=1)))
             if dist < gate_mm:
                 cost[r, c] = dist
+    # A face two units could have turned to, nearly as near each, goes to neither (see
+    # _ambiguous_overturns): a unit showing now, where it was, another face it hid then did
+    # not turn over, and is no rival.
+    alone = [d.current_index for d in appeared if d.current_index is not None]
+    shows = [
+        set(faces_shown_in_place([base[i] for i in unit_list[n][1]], cur, alone, template))
+        for n in cols
+    ]
+    for r, d in enumerate(rows):
+        rivals = [
+            cost[r, c]
+            for c in range(len(cols))
+            if cost[r, c] < big and shows[c] <= {d.current_index}
+        ]
+        if len(rivals) > 1:
+            first, second = sorted(rivals)[:2]
+            if second <= AMBIGUOUS_OVERTURN_RATIO * first:
+                cost[r] = big
     ri, ci = linear_sum_assignment(cost)
     return [(rows[r], cols[c]) for r, c in zip(ri, ci, strict=True) if cost[r, c] < big]
 

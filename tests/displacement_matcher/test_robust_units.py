@@ -1019,6 +1019,25 @@ def test_unit_turned_over_in_place_is_not_held_by_a_neighbours_face_where_its_wa
     assert summary.displaced_units == doc["true_displaced_units"]
 
 
+def test_a_face_two_lost_units_could_have_turned_to_counts_neither_overturned() -> None:
+    """Recorded from an end-to-end dolos field (seed 10, physical blur, everything within 80 mm
+    of a still unit): the still unit and its neighbour each showed one code-29 face; after the
+    run the neighbour, turned over, shows only its code-41 face (opposite), which hides the
+    still unit's. The new face lies 21.6 mm from the still unit's old face and 22.7 mm from the
+    neighbour's own: either unit could have turned to it, and the matching's cost cannot tell
+    which. The still unit is not counted overturned; the one that turned is lost, not counted
+    either (a miss, where the cost picked the still unit before)."""
+    _, units, summary, doc = _recorded("turned_between_two_seed10.json")
+    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    turned = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    assert not still.overturned and still.status == "lost"
+    assert turned.status == "lost"
+    assert not set(doc["mover_current_indices"]) & (
+        set(still.current_indices) | set(turned.current_indices)
+    )
+    assert summary.displaced_units <= doc["true_displaced_units"] - 1
+
+
 def test_unit_holding_a_code_through_a_cross_code_pair_takes_no_second_face_of_it() -> None:
     """Recorded from an end-to-end dolos field (seed 0, everything within 80 mm of a unit that
     turned over): two neighbouring units turned over. One showed three faces and now shows only
