@@ -946,9 +946,12 @@ def unit_motions(
         # the same way, nearly as near, measures neither: its face is left to no one.
         for n in _ambiguous_overturns(result, unit_list, pairs_of, has_same, template):
             (k,) = pairs_of[n]
-            taken.add(cur_of[n].pop())
+            j = result.displacements[k].current_index
+            assert j is not None
             pairs_of[n].remove(k)
+            cur_of[n].remove(j)
             vanished_of[n] += 1
+            taken.add(j)
     # Faces still seen in place, for both unit-level rules below (found once).
     shown: dict[int, int] = {}
     if owner_codes is None and template is not None and (normals or template.positions_mm):
@@ -1217,6 +1220,7 @@ def _ambiguous_overturns(
     """
     base, cur = result.baseline, result.current
     lost = [m for m, ks in pairs_of.items() if not ks and unit_list[m][1]]
+    alone = [e.current_index for e in result.by_label("appeared") if e.current_index is not None]
     out: list[int] = []
     for n, ks in pairs_of.items():
         if len(ks) != 1 or n in has_same:
@@ -1228,9 +1232,6 @@ def _ambiguous_overturns(
         if not opposed_faces(template, code, {int(base[i].code) for i in unit_list[n][1]}):
             continue
         reach = AMBIGUOUS_OVERTURN_RATIO * float(d.distance_mm or 0.0)
-        alone = [
-            e.current_index for e in result.by_label("appeared") if e.current_index is not None
-        ]
         for m in lost:
             ix = unit_list[m][1]
             if not opposed_faces(template, code, {int(base[i].code) for i in ix}):

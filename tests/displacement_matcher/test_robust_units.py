@@ -1038,6 +1038,21 @@ def test_a_face_two_lost_units_could_have_turned_to_counts_neither_overturned() 
     assert summary.displaced_units <= doc["true_displaced_units"] - 1
 
 
+def test_a_face_one_unit_could_have_turned_to_still_counts_it_overturned() -> None:
+    """Recorded from an end-to-end dolos field (seed 14, physical blur, everything within 80 mm
+    of a unit that turned over): it showed only its code-29 face and now shows only its code-41
+    face, opposite. Other units that lost their faces lie about as near it, but each shows now,
+    where it was, a face it hid then: they did not turn over and are no rivals, so the face is
+    the turned unit's evidence (the rule for a face two lost units could have turned to, checked
+    without that test, lost this unit)."""
+    _, units, summary, doc = _recorded("turned_beside_shown_seed14.json")
+    turned = next(u for u in units if doc["mover_baseline_indices"][0] in u.baseline_indices)
+    assert turned.overturned and turned.status == "overturned"
+    assert set(doc["mover_current_indices"]) <= set(turned.current_indices)
+    still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
+    assert still.status != "displaced" and not still.overturned
+
+
 def test_unit_holding_a_code_through_a_cross_code_pair_takes_no_second_face_of_it() -> None:
     """Recorded from an end-to-end dolos field (seed 0, everything within 80 mm of a unit that
     turned over): two neighbouring units turned over. One showed three faces and now shows only
