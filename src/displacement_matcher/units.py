@@ -1219,8 +1219,12 @@ def _ambiguous_overturns(
     should not rest on that: neither unit is measured by the face.
     """
     base, cur = result.baseline, result.current
+    # Where a face it hid may show now (as _relocated looks: the gate and half a unit).
+    reach_mm = result.params.gate_mm + 0.5 * template_span(template)
     lost = [m for m, ks in pairs_of.items() if not ks and unit_list[m][1]]
-    alone = [e.current_index for e in result.by_label("appeared") if e.current_index is not None]
+    alone = np.array(
+        [e.current_index for e in result.by_label("appeared") if e.current_index is not None]
+    )
     out: list[int] = []
     for n, ks in pairs_of.items():
         if len(ks) != 1 or n in has_same:
@@ -1241,11 +1245,28 @@ def _ambiguous_overturns(
                 continue
             # A unit showing now, where it was, a face it hid then (one matched to nothing) did
             # not turn over.
-            faces = [base[i] for i in ix]
-            if next(faces_shown_in_place(faces, cur, alone, template), None) is None:
+            if not _shown_in_place([base[i] for i in ix], cur, alone, template, reach_mm):
                 out.append(n)
                 break
     return out
+
+
+def _shown_in_place(
+    faces: Sequence[FiducialPose],
+    cur: tuple[FiducialPose, ...],
+    alone: NDArray[np.intp],
+    template: UnitSpec,
+    reach_mm: float,
+) -> set[int]:
+    """The faces among ``alone`` (current indices) within ``reach_mm`` of ``faces`` that a
+    unit showing those before hid then and shows now where it was
+    (:func:`faces_shown_in_place`; as :func:`_shows_hidden_face`, which stops at the first)."""
+    if alone.size == 0:
+        return set()
+    old = np.array([f.position_mm for f in faces], dtype=np.float64)
+    now = np.array([cur[j].position_mm for j in alone.tolist()], dtype=np.float64)
+    near = np.min(np.linalg.norm(now[:, None, :] - old[None, :, :], axis=2), axis=1)
+    return set(faces_shown_in_place(faces, cur, alone[near <= reach_mm].tolist(), template))
 
 
 def _overturn_evidence(
@@ -1312,17 +1333,21 @@ def _overturn_evidence(
     # A face two units could have turned to, nearly as near each, goes to neither (see
     # _ambiguous_overturns): a unit showing now, where it was, another face it hid then did
     # not turn over, and is no rival.
-    alone = [d.current_index for d in appeared if d.current_index is not None]
-    shows = [
-        set(faces_shown_in_place([base[i] for i in unit_list[n][1]], cur, alone, template))
-        for n in cols
-    ]
+    alone = np.array([d.current_index for d in appeared if d.current_index is not None])
+    reach_mm = gate_mm + 0.5 * template_span(template)
+    shows: dict[int, set[int]] = {}
     for r, d in enumerate(rows):
-        rivals = [
-            cost[r, c]
-            for c in range(len(cols))
-            if cost[r, c] < big and shows[c] <= {d.current_index}
-        ]
+        finite = np.flatnonzero(cost[r] < big)
+        if finite.size < 2:
+            continue
+        rivals = []
+        for c in finite.tolist():
+            if c not in shows:
+                shows[c] = _shown_in_place(
+                    [base[i] for i in unit_list[cols[c]][1]], cur, alone, template, reach_mm
+                )
+            if shows[c] <= {d.current_index}:
+                rivals.append(cost[r, c])
         if len(rivals) > 1:
             first, second = sorted(rivals)[:2]
             if second <= AMBIGUOUS_OVERTURN_RATIO * first:
