@@ -1209,8 +1209,8 @@ def _ambiguous_overturns(
 ) -> list[int]:
     """Units whose only evidence is one cross-code pair reading as a turn-over (its current
     face's template normal opposite the unit's old faces) that another unit which lost every
-    face would read the same way from at most :data:`AMBIGUOUS_OVERTURN_RATIO` times the
-    pair's distance.
+    face, at least as many as this one showed, would read the same way from at most
+    :data:`AMBIGUOUS_OVERTURN_RATIO` times the pair's distance.
 
     Two neighbours each seen through one face before, neither of them after, and one face
     opposite to both now shown between them: one of them turned over, the other is hidden
@@ -1238,6 +1238,8 @@ def _ambiguous_overturns(
         reach = AMBIGUOUS_OVERTURN_RATIO * float(d.distance_mm or 0.0)
         for m in lost:
             ix = unit_list[m][1]
+            if len(ix) < len(unit_list[n][1]):
+                continue  # it lost fewer faces: weaker evidence of a turn
             if not opposed_faces(template, code, {int(base[i].code) for i in ix}):
                 continue
             pos = np.array([base[i].position_mm for i in ix], dtype=np.float64)
@@ -1347,10 +1349,14 @@ def _overturn_evidence(
                     [base[i] for i in unit_list[cols[c]][1]], cur, alone, template, reach_mm
                 )
             if shows[c] <= {d.current_index}:
-                rivals.append(cost[r, c])
+                rivals.append((float(cost[r, c]), len(unit_list[cols[c]][1])))
         if len(rivals) > 1:
-            first, second = sorted(rivals)[:2]
-            if second <= AMBIGUOUS_OVERTURN_RATIO * first:
+            (nearest, its_faces), *others = sorted(rivals)
+            # A rival as near that lost at least as many faces reads the turn-over as well.
+            if any(
+                dist <= AMBIGUOUS_OVERTURN_RATIO * nearest and n_faces >= its_faces
+                for dist, n_faces in others
+            ):
                 cost[r] = big
     ri, ci = linear_sum_assignment(cost)
     return [(rows[r], cols[c]) for r, c in zip(ri, ci, strict=True) if cost[r, c] < big]
