@@ -1195,8 +1195,8 @@ def opposed_faces(template: UnitSpec | None, code: int, others: Any) -> bool:
     )
 
 
-#: :func:`_ambiguous_overturns`: another lost unit this much farther (or less) from the face
-#: than the pair's own distance reads the turn-over as well.
+#: A rival lost unit at most this many times the nearer unit's distance from a face opposite
+#: to both reads that turn-over as well (:func:`_ambiguous_overturns`).
 AMBIGUOUS_OVERTURN_RATIO = 1.2
 
 
