@@ -1051,6 +1051,7 @@ def test_a_face_one_unit_could_have_turned_to_still_counts_it_overturned() -> No
     assert set(doc["mover_current_indices"]) <= set(turned.current_indices)
     still = next(u for u in units if doc["unit_baseline_indices"][0] in u.baseline_indices)
     assert still.status != "displaced" and not still.overturned
+    assert 1 <= summary.displaced_units <= doc["true_displaced_units"]
 
 
 def test_unit_holding_a_code_through_a_cross_code_pair_takes_no_second_face_of_it() -> None:
