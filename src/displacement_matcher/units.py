@@ -1260,9 +1260,12 @@ def _shown_in_place(
     template: UnitSpec,
     reach_mm: float,
 ) -> set[int]:
-    """The faces among ``alone`` (current indices) within ``reach_mm`` of ``faces`` that a
-    unit showing those before hid then and shows now where it was
-    (:func:`faces_shown_in_place`; as :func:`_shows_hidden_face`, which stops at the first)."""
+    """The appeared fiducials among ``alone`` (current indices) within ``reach_mm`` of
+    ``faces`` that a unit which lost every face it showed (``faces``) hid before and shows now,
+    where it was (:func:`faces_shown_in_place`). A still unit whose one seen face is hidden
+    after the run (covered, or a neighbour moved in front) often shows another then; it is not
+    a unit that moved far (:func:`_relocated`) nor one that turned over
+    (:func:`_ambiguous_overturns`)."""
     if alone.size == 0:
         return set()
     old = np.array([f.position_mm for f in faces], dtype=np.float64)
@@ -1420,7 +1423,7 @@ def _relocated(
     face still seen in place; the cost of a pair is the mean distance from the unit's old faces
     to where the fitted template puts them now, below ``limit_mm``, and the assignment is one to
     one at minimum total cost (several lost units may share a neighbourhood). A unit that shows
-    now, where it was, a face it hid before (:func:`_shows_hidden_face`) is not a candidate.
+    now, where it was, a face it hid before (:func:`_shown_in_place`) is not a candidate.
 
     Returns
     -------
@@ -1451,7 +1454,7 @@ def _relocated(
             continue
         if not all(int(base[i].code) in template.positions_mm for i in ix):
             continue
-        if _shows_hidden_face([base[i] for i in ix], cur, alone, template, limit_mm):
+        if _shown_in_place([base[i] for i in ix], cur, alone, template, limit_mm):
             continue
         rows.append(n)
     if not rows:
@@ -1491,27 +1494,6 @@ def faces_shown_in_place(
             continue
         if fits_template([*faces, p], template):
             yield j
-
-
-def _shows_hidden_face(
-    faces: Sequence[FiducialPose],
-    cur: tuple[FiducialPose, ...],
-    alone: NDArray[np.intp],
-    template: UnitSpec,
-    reach_mm: float,
-) -> bool:
-    """Whether a unit that lost every face it showed shows now, where it was, a face it hid
-    before (:func:`faces_shown_in_place`): an appeared fiducial (index in ``alone``) within
-    ``reach_mm`` of its faces. A still unit whose one seen face is hidden after the run
-    (covered, or a neighbour moved in front) often shows another then; it is not a unit that
-    moved far (:func:`_relocated`)."""
-    if alone.size == 0:
-        return False
-    old = np.array([f.position_mm for f in faces], dtype=np.float64)
-    now = np.array([cur[j].position_mm for j in alone.tolist()], dtype=np.float64)
-    near = np.min(np.linalg.norm(now[:, None, :] - old[None, :, :], axis=2), axis=1)
-    within = alone[near <= reach_mm].tolist()
-    return next(faces_shown_in_place(faces, cur, within, template), None) is not None
 
 
 def _relocated_motion(
