@@ -52,8 +52,7 @@ static int grow(Growing *g, size_t more)
 }
 
 /* Chain codes, counter-clockwise as the image is shown (rows down): 0 right, 1 up-right, 2 up,
- * 3 up-left, 4 left, 5 down-left, 6 down, 7 down-right; offsets in the padded image, twice over
- * so that a search may run on past code 7. */
+ * 3 up-left, 4 left, 5 down-left, 6 down, 7 down-right. */
 static const int DU[8] = {1, 1, 0, -1, -1, -1, 0, 1};
 static const int DV[8] = {0, -1, -1, -1, 0, 1, 1, 1};
 
@@ -77,16 +76,27 @@ static inline void add_edge(Sums *m, int64_t xp, int64_t yp, int64_t x, int64_t 
     m->s[5] += cross * (ys * ys - yp * y);
 }
 
-/* Follows the border that starts at pixel `start` (Suzuki & Abe's step 3), marking it, from the
- * neighbour with code `from` (white: left of an outer border's start, right of a hole's). With
- * `sums` given, its moment sums and its compressed chain (points relative to the padding, as
- * (u, v) int32 pairs) are taken too. Returns -1 when out of memory. */
-static int follow(uint8_t *img, Py_ssize_t stride, Py_ssize_t start, int from, Sums *sums,
-                  Growing *points)
+/* A chain point (u, v) appended. Returns -1 when out of memory. */
+static int push_point(Growing *points, int32_t u, int32_t v)
 {
-    Py_ssize_t delta[16];
-    for (int k = 0; k < 16; k++) delta[k] = DU[k & 7] + DV[k & 7] * stride;
+    if (grow(points, 2 * sizeof(int32_t)) < 0) return -1;
+    int32_t *p = (int32_t *)(points->data + points->used);
+    p[0] = u;
+    p[1] = v;
+    points->used += 2 * sizeof(int32_t);
+    return 0;
+}
+
+/* Follows the border that starts at pixel `start` (Suzuki & Abe's step 3), marking it, from the
+ * neighbour with code `from` (white: left of an outer border's start, right of a hole's);
+ * `delta`: the 16 chain-code offsets in the padded image. With `sums` given, its moment sums and
+ * its compressed chain (points relative to the padding, as (u, v) int32 pairs) are taken too.
+ * Returns -1 when out of memory. */
+static int follow(uint8_t *img, const Py_ssize_t *delta, Py_ssize_t stride, Py_ssize_t start,
+                  int from, Sums *sums, Growing *points)
+{
     int32_t u = (int32_t)(start % stride) - 1, v = (int32_t)(start / stride) - 1;
+    if (sums != NULL) memset(sums, 0, sizeof(*sums));
 
     /* 3.1: clockwise from `from` (exclusive) round to it, the first black neighbour. */
     int s = from;
@@ -97,18 +107,10 @@ static int follow(uint8_t *img, Py_ssize_t stride, Py_ssize_t start, int from, S
     } while (img[i1] == WHITE && s != from);
     if (img[i1] == WHITE) { /* a lone pixel */
         img[start] = NEGATIVE;
-        if (sums != NULL) {
-            memset(sums, 0, sizeof(*sums));
-            sums->steps = 1; /* _polygon_moments counts a lone pixel one step long */
-            if (grow(points, 2 * sizeof(int32_t)) < 0) return -1;
-            int32_t *p = (int32_t *)(points->data + points->used);
-            p[0] = u;
-            p[1] = v;
-            points->used += 2 * sizeof(int32_t);
-        }
-        return 0;
+        if (sums == NULL) return 0;
+        sums->steps = 1; /* _polygon_moments counts a lone pixel one step long */
+        return push_point(points, u, v);
     }
-    if (sums != NULL) memset(sums, 0, sizeof(*sums));
     Py_ssize_t i3 = start, i4;
     int previous = s ^ 4; /* as cv2: a run is written when the direction changes */
     for (;;) {
@@ -126,11 +128,7 @@ static int follow(uint8_t *img, Py_ssize_t stride, Py_ssize_t start, int from, S
             img[i3] = POSITIVE;
         if (sums != NULL) {
             if (s != previous) {
-                if (grow(points, 2 * sizeof(int32_t)) < 0) return -1;
-                int32_t *p = (int32_t *)(points->data + points->used);
-                p[0] = u;
-                p[1] = v;
-                points->used += 2 * sizeof(int32_t);
+                if (push_point(points, u, v) < 0) return -1;
                 previous = s;
             }
             add_edge(sums, u, v, u + DU[s], v + DV[s]);
@@ -187,6 +185,8 @@ static PyObject *outer_borders(PyObject *self, PyObject *args)
     Py_ssize_t stride = w + 2, total = (h + 2) * stride;
     uint8_t *img = calloc((size_t)total + 16, 1);
     Growing sums = {0}, points = {0}, starts = {0};
+    Py_ssize_t delta[16]; /* chain codes 0-7 twice, so that a search may run past code 7 */
+    for (int k = 0; k < 16; k++) delta[k] = DU[k & 7] + DV[k & 7] * stride;
     int failed = img == NULL;
     if (!failed) {
         Py_BEGIN_ALLOW_THREADS;
@@ -213,7 +213,7 @@ static PyObject *outer_borders(PyObject *self, PyObject *args)
                         /* An outer border starts at x. */
                         Sums m;
                         Py_ssize_t at = points.used / (2 * sizeof(int32_t));
-                        if (follow(img, stride, y * stride + x, 4, &m, &points) < 0 ||
+                        if (follow(img, delta, stride, y * stride + x, 4, &m, &points) < 0 ||
                             grow(&sums, 7 * sizeof(double)) < 0 ||
                             grow(&starts, sizeof(int64_t)) < 0) {
                             failed = 1;
@@ -227,7 +227,7 @@ static PyObject *outer_borders(PyObject *self, PyObject *args)
                         starts.used += sizeof(int64_t);
                     } else if (row[x - 1] == BLACK || row[x - 1] == POSITIVE) {
                         /* A hole border starts at x - 1: followed for its marks only. */
-                        follow(img, stride, y * stride + x - 1, 0, NULL, NULL);
+                        follow(img, delta, stride, y * stride + x - 1, 0, NULL, NULL);
                     }
                 }
             }

@@ -95,12 +95,13 @@ class _OuterBorders:
 
     ``sums`` rows are the six unscaled edge sums of :func:`_polygon_moments` and the length in
     unit steps; border ``i``'s chain, compressed to the ends of its straight runs, is
-    ``points[starts[i]:starts[i + 1]]``, in reverse order of ``sums`` (see ``__getitem__``).
+    ``points[starts[i]:ends[i]]``.
     """
 
     sums: NDArray[np.float64]
     points: NDArray[np.int32]
     starts: NDArray[np.int64]
+    ends: NDArray[np.int64]
 
     def __len__(self) -> int:
         return int(self.sums.shape[0])
@@ -108,22 +109,24 @@ class _OuterBorders:
     def __getitem__(self, i: int) -> NDArray[np.int32]:
         """Border ``i``'s chain, an ``(n, 1, 2)`` array of ``(u, v)`` as ``cv2.findContours``
         gives it."""
-        k = len(self) - 1 - i
-        return self.points[self.starts[k] : self.starts[k + 1]].reshape(-1, 1, 2)
+        return self.points[self.starts[i] : self.ends[i]].reshape(-1, 1, 2)
 
 
 def _outer_borders(binary: NDArray[np.uint8]) -> _OuterBorders:
     """Outer borders of the non-zero components of ``binary``, traced by the compiled kernel
     (:mod:`._border_kernel`): the same chains, in the same order, as the top level of
     ``cv2.findContours(binary, RETR_CCOMP, CHAIN_APPROX_SIMPLE)`` (OpenCV lists the borders in
-    the reverse of their raster order; the kernel in raster order), with their moment sums."""
+    the reverse of their raster order, the kernel in raster order: reversed here), with their
+    moment sums."""
     image = np.ascontiguousarray(binary, dtype=np.uint8)
     h, w = image.shape
     sums, points, starts = _border_kernel.outer_borders(image, h, w)
+    first = np.frombuffer(starts, dtype=np.int64)
     return _OuterBorders(
         np.frombuffer(sums, dtype=np.float64).reshape(-1, 7)[::-1],
         np.frombuffer(points, dtype=np.int32).reshape(-1, 2),
-        np.frombuffer(starts, dtype=np.int64),
+        first[-2::-1],
+        first[:0:-1],
     )
 
 
