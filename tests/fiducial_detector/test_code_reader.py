@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 
 from armourcam.render import Target, render, rotation_from_slant_tilt
+from fiducial_detector import detect
 from fiducial_detector.code_reader import (
     _CORE,
     _PER_SECTOR,
     ReaderConfig,
     _decode_table,
     _distance_table,
+    _phase_offset,
     _sector_phase,
     model_read,
     read_codes,
@@ -242,3 +244,74 @@ def test_model_read_rejects_what_is_not_a_track() -> None:
     # Samples off the image: no read.
     m = model_read(flat, get_design("ring"), np.array([[3.0, 32.0]]), ax, ang, None, 5.0)
     assert np.isnan(m.rms[0]) and m.separation[0] == -np.inf
+
+
+def test_phase_offset_recovers_sub_step_shifts() -> None:
+    """On a blurred track with known boundaries (Gaussian blur of 0.5-1.2 steps, noise 0.3 % of
+    the contrast per angle), the phase plus its offset lands on the boundaries to within a few
+    hundredths of a step (0.012 at most here) wherever they fall between the samples."""
+    from scipy.special import ndtr
+
+    rng = np.random.default_rng(14)
+    n_ang = BITS * _PER_SECTOR
+    t = np.arange(n_ang) + 0.5  # sample positions, in steps
+    errors = []
+    for k in range(60):
+        bits = rotation_table()[k % code_count(), 0]
+        start = rng.uniform(1.5, 5.5)  # sector 0 starts here (steps)
+        blur = rng.uniform(0.5, 1.2)
+        black = np.zeros(n_ang)
+        for i in np.nonzero(bits)[0]:
+            d = (t - start - i * _PER_SECTOR + n_ang / 2) % n_ang - n_ang / 2  # wrapped
+            black += ndtr(d / blur) - ndtr((d - _PER_SECTOR) / blur)
+        # Three radii summed per angle: white 200, black 30, each sample's noise 1 level.
+        ring = (3 * (200.0 - 170.0 * black) + rng.normal(0, np.sqrt(3.0), n_ang))[None]
+        phase, diff = _sector_phase(ring.astype(np.float32), np.array([12 * 115.0], np.float32))
+        offset = _phase_offset(ring.astype(np.float32), phase, bits[None], diff)
+        errors.append(phase[0] + offset[0] - start)
+    assert np.max(np.abs(errors)) < 0.035, np.round(errors, 3)
+    # No colour change at all: the phase as found.
+    flat = np.full((1, n_ang), 300.0, np.float32)
+    zero = np.zeros((1, BITS), np.uint8)
+    assert _phase_offset(flat, np.array([3]), zero, np.zeros((1, BITS), np.float32))[0] == 0.0
+
+
+def _spun(design: str, size: float, slant: float, spin: float, seed: int) -> tuple:
+    """A ``size`` px fiducial (outer diameter at zero slant) at ``slant`` deg and ``spin`` rad
+    (blur 0.5 px, noise 1 %), and the true image angle of its printed +x axis: from the image
+    of its centre to that of a point on the axis half-way out."""
+    rng = np.random.default_rng(seed)
+    focal, diameter = 6507.0, 7.1
+    z = focal * diameter / size
+    side = int(1.6 * size) + 24
+    camera = CameraModel.ideal(side, side, focal)
+    rot = rotation_from_slant_tilt(np.radians(slant), rng.uniform(0, np.pi), spin)
+    position = np.array([*(rng.uniform(-0.5, 0.5, 2) * z / focal), z])
+    code = int(rng.integers(code_count()))
+    target = Target(code, design, diameter, rot, position)
+    scene = render(camera, [target], blur_sigma=0.5, noise=0.01, rng=rng)
+    ends = camera.project(np.array([position, position + rot[:, 0] * 0.25 * diameter]))
+    du, dv = ends[1] - ends[0]
+    return scene, code, float(np.arctan2(dv, du))
+
+
+@pytest.mark.parametrize(
+    ("design", "size", "bound_deg"), [("ring", 33, 0.3), ("ring", 60, 0.1), ("dot", 60, 0.1)]
+)
+def test_rotation_is_finer_than_the_phase_step(design: str, size: float, bound_deg: float) -> None:
+    """The detected ``rotation`` places the sector 15 / 0 boundary to a fraction of the phase
+    search's step (1/8 of a sector, 2.8 deg, whose rounding alone leaves an RMS error of 0.8
+    deg: 0.77-0.82 deg on these cases before the sub-step offset). Over 8 spins at slants 0, 30
+    and 60 deg (blur 0.5 px, noise 1 %) the RMS error is 0.12 deg (``ring``, 33 px), 0.03 deg
+    (``ring``, 60 px) and 0.05 deg (``dot``, 60 px), the largest 0.32, 0.05 and 0.08 deg. The
+    ``dot`` design at 33 px is left out: slanted 60 deg, the ellipse of its 5 px dot, through
+    which the track is read, errs enough to leave 0.6 deg RMS (0.42 deg over these cases)."""
+    errors = []
+    for slant in (0.0, 30.0, 60.0):
+        for k, spin in enumerate(np.linspace(0.0, 2 * np.pi, 8, endpoint=False) + 0.1):
+            scene, code, truth = _spun(design, size, slant, float(spin), 100 * int(slant) + k)
+            (found,) = [d for d in detect(scene.image) if d.code == code]
+            errors.append((found.rotation - truth + np.pi) % (2 * np.pi) - np.pi)
+    err = np.degrees(np.abs(errors))
+    assert np.sqrt(np.mean(err**2)) < bound_deg, np.round(err, 2)
+    assert err.max() < 3 * bound_deg, np.round(err, 2)
