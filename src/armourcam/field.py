@@ -180,6 +180,7 @@ class FieldState:
         *,
         sigma_xy_mm: float = 0.1,
         sigma_z_mm: float = 1.0,
+        sigma_spin_deg: float = 0.7,
         include_occluded: bool = False,
     ) -> list[FiducialPose]:
         """Fiducial poses of the observable fiducials (order of :attr:`observable_ids`).
@@ -189,19 +190,29 @@ class FieldState:
 
         With ``rng`` the positions carry simulated monocular estimation noise: ``sigma_xy_mm``
         across the viewing ray and ``sigma_z_mm`` along it, the latter growing with the slant
-        (``/ cos(slant)``, capped at 4x) as in the paper's Figure 4; the covariance says so.
-        Without ``rng`` the positions are exact (covariance still the model's).
+        (``/ cos(slant)``, capped at 4x) as in the paper's Figure 4; the covariance says so,
+        and each printed axis (``FiducialPose.axis``) is turned about its normal by a normal
+        error of ``sigma_spin_deg`` (drawn from a generator spawned from ``rng``, so that the
+        positions' draws are those of poses without axes). Without ``rng`` the poses are exact
+        (covariance still the model's).
         """
         out = []
         ids = self.visible_ids if include_occluded else self.observable_ids
-        for i in ids.tolist():
+        spin = (
+            np.zeros(len(ids))
+            if rng is None
+            else np.radians(rng.spawn(1)[0].normal(0.0, sigma_spin_deg, len(ids)))
+        )
+        for k, i in enumerate(ids.tolist()):
             p = self.position_mm[i]
             ray = p / np.linalg.norm(p)
             cos_slant = float(np.clip(-ray @ self.normal[i], 0.25, 1.0))
             sz = sigma_z_mm / cos_slant
             cov = sigma_xy_mm**2 * np.eye(3) + (sz**2 - sigma_xy_mm**2) * np.outer(ray, ray)
             q = p if rng is None else rng.multivariate_normal(p, cov)
-            out.append(FiducialPose(int(self.code[i]), q, self.normal[i].copy(), cov))
+            frame = _face_rotation(self.normal[i], self.rotations[self.unit[i]])
+            axis = np.cos(spin[k]) * frame[:, 0] + np.sin(spin[k]) * frame[:, 1]
+            out.append(FiducialPose(int(self.code[i]), q, self.normal[i].copy(), cov, axis=axis))
         return out
 
 

@@ -871,6 +871,7 @@ def pose_columns_to_records(
     detection_index: Any,
     n_frames: Any = 1,
     systematic_mm2: Any = None,
+    axis: Any = None,
 ) -> NDArray[Any]:
     """Pose columns -> ``FiducialPoseRecord`` structured array (the shared body of
     :func:`poses_to_records`, and the pose node's path without pose objects).
@@ -889,6 +890,8 @@ def pose_columns_to_records(
     systematic_mm2 : (N, 3, 3) array, optional
         Covariances of the positions' systematic errors (``FiducialPose.systematic_mm2``;
         zeros or None: none).
+    axis : (N, 3) array, optional
+        Printed +x axes (``FiducialPose.axis``; NaN rows or None: not measured).
     """
     lay = layout(POSE)
     try:
@@ -902,6 +905,11 @@ def pose_columns_to_records(
             if systematic_mm2 is None
             else np.asarray(systematic_mm2, dtype=np.float64).reshape(n, 3, 3)
         )
+        axes = (
+            np.full((n, 3), np.nan)
+            if axis is None
+            else np.asarray(axis, dtype=np.float64).reshape(n, 3)
+        )
     except ValueError as err:
         raise RecordError(f"poses with malformed position/normal/covariance: {err}") from err
     out = lay.empty(n)
@@ -909,6 +917,7 @@ def pose_columns_to_records(
         return out
     out["x"], out["y"], out["z"] = pos.T
     out["nx"], out["ny"], out["nz"] = nrm.T
+    out["ax"], out["ay"], out["az"] = axes.T
     out["covariance"] = covariance_to_upper(cov)
     out["systematic"] = covariance_to_upper(bias)
     out["code"] = _int_column("pose", "code", np.asarray(code).tolist(), 0, 2**32 - 1)
@@ -937,7 +946,9 @@ def estimate_pose_records(
     recs = _as_records(DETECTION, detection_records)
     values, covs = detection_ellipse_columns(recs)
     camera.check_pixels(recs["u"], recs["v"])
-    result = estimate_ellipses(values, covs, 0.5 * float(diameter_mm), camera)
+    result = estimate_ellipses(
+        values, covs, 0.5 * float(diameter_mm), camera, np.asarray(recs["rotation"], np.float64)
+    )
     keep = np.flatnonzero(result.valid)
     return pose_columns_to_records(
         recs["code"][keep],
@@ -947,6 +958,7 @@ def estimate_pose_records(
         np.column_stack([recs["u"][keep], recs["v"][keep]]),
         keep,
         systematic_mm2=None if result.systematic_mm2 is None else result.systematic_mm2[keep],
+        axis=None if result.axis is None else result.axis[keep],
     )
 
 
@@ -963,9 +975,9 @@ def poses_to_records(
         The frame's detections, in the order they are published; a pose whose ``detection`` is
         one of them (by identity) records its row in ``detection_index``, else -1.
 
-    Stored: code, position, normal, covariance and systematic covariance (upper triangles; zeros
-    for a pose without a known bias), n_frames, the detection's centre ``(u, v)`` (NaN without a
-    detection) and ``detection_index``.
+    Stored: code, position, normal, printed axis (NaN without one), covariance and systematic
+    covariance (upper triangles; zeros for a pose without a known bias), n_frames, the
+    detection's centre ``(u, v)`` (NaN without a detection) and ``detection_index``.
     """
     if not poses:
         return layout(POSE).empty(0)
@@ -981,8 +993,10 @@ def poses_to_records(
     uv = [p.detection.center_px if p.detection is not None else nan for p in poses]
     zero = np.zeros((3, 3))
     bias = [zero if p.systematic_mm2 is None else p.systematic_mm2 for p in poses]
+    nan3 = np.full(3, np.nan)
+    axes = [nan3 if p.axis is None else np.reshape(p.axis, 3) for p in poses]
     return pose_columns_to_records(
-        [p.code for p in poses], pos, nrm, cov, uv, index, [p.n_frames for p in poses], bias
+        [p.code for p in poses], pos, nrm, cov, uv, index, [p.n_frames for p in poses], bias, axes
     )
 
 
@@ -1005,6 +1019,8 @@ def records_to_poses(
     biased = np.any(bias != 0.0, axis=(1, 2)).tolist()
     pos = np.column_stack([recs["x"], recs["y"], recs["z"]]).astype(np.float64)
     nrm = np.column_stack([recs["nx"], recs["ny"], recs["nz"]]).astype(np.float64)
+    axes = np.column_stack([recs["ax"], recs["ay"], recs["az"]]).astype(np.float64)
+    has_axis = np.all(np.isfinite(axes), axis=1).tolist()
     idx = recs["detection_index"].tolist()
     if detections is not None:
         bad = [i for i, k in enumerate(idx) if k >= len(detections)]
@@ -1023,6 +1039,7 @@ def records_to_poses(
             detection=detections[idx[i]] if detections is not None and idx[i] >= 0 else None,
             n_frames=frames[i],
             systematic_mm2=bias[i].copy() if biased[i] else None,
+            axis=axes[i].copy() if has_axis[i] else None,
         )
         for i in range(len(recs))
     ]

@@ -1104,6 +1104,7 @@ def pose_to_dict(pose: FiducialPose) -> dict[str, Any]:
             if pose.systematic_mm2 is None
             else np.asarray(pose.systematic_mm2, dtype=float).tolist()
         ),
+        "axis": None if pose.axis is None else np.asarray(pose.axis, dtype=float).tolist(),
     }
 
 
@@ -1115,7 +1116,9 @@ def pose_from_dict(doc: dict[str, Any]) -> FiducialPose:
     bias = doc.get("systematic_mm2")  # (absent from baselines saved before it existed)
     systematic = None if bias is None else np.asarray(bias, dtype=np.float64).reshape(3, 3)
     frames = int(doc.get("n_frames", 1))
-    return FiducialPose(int(doc["code"]), pos, normal, cov, None, frames, systematic)
+    spin = doc.get("axis")  # (absent from baselines saved before it existed)
+    axis = None if spin is None else np.asarray(spin, dtype=np.float64).reshape(3)
+    return FiducialPose(int(doc["code"]), pos, normal, cov, None, frames, systematic, axis)
 
 
 def marker_to_dict(m: MarkerSpec) -> dict[str, Any]:

@@ -31,6 +31,10 @@ the TRIP method). Here every fitted concentric circle of the design contributes:
    the dual conic standing in) also gives the error that bias makes, the same in every image, as
    a systematic covariance beside it (``systematic_mm2``), which neither weighs the fits nor
    shrinks when frames are fused.
+6. **Spin from the code.** The circles leave the rotation about the normal free; the image angle
+   at which the code's sector 0 starts (``FiducialDetection.rotation``), back-projected onto the
+   fiducial's plane, gives the printed +x axis (:mod:`pose_estimator.orientation`), so each pose
+   carries its full orientation (``FiducialPose.axis``, ``frame``).
 
 Conventions: pixels ``(u, v)`` with pixel centres at integer coordinates; camera frame OpenCV
 (x right, y down, z forward), millimetres; normals point out of the printed face, towards the
@@ -40,7 +44,7 @@ camera.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import chain
 from operator import attrgetter
 
@@ -65,6 +69,7 @@ from .conic_pose import (
     sqrtm_diff,
 )
 from .errors import PoseError
+from .orientation import printed_axes
 from .types import FiducialPose
 
 F64 = NDArray[np.float64]
@@ -126,19 +131,23 @@ def estimate(
     if not dets:
         return []
     values, covs = detection_columns(dets)
-    result = estimate_ellipses(values, covs, 0.5 * float(diameter_mm), camera)
+    rotation = np.array([d.rotation for d in dets], dtype=np.float64)
+    result = estimate_ellipses(values, covs, 0.5 * float(diameter_mm), camera, rotation)
     pos, nrm, cvm = result.position_mm, result.normal, result.covariance_mm2
-    biased = result.systematic_mm2
+    biased, axis = result.systematic_mm2, result.axis
+    assert axis is not None  # the angles were given
     if not result.valid.all():
         keep = np.flatnonzero(result.valid)
         dets = [dets[i] for i in keep]
-        pos, nrm, cvm = pos[keep], nrm[keep], cvm[keep]
+        pos, nrm, cvm, axis = pos[keep], nrm[keep], cvm[keep], axis[keep]
         biased = None if biased is None else biased[keep]
     sysm = None
     if biased is not None:
         # A pose without a known bias keeps None (most of them).
         sysm = [b if b.any() else None for b in biased]
-    return FiducialPose.from_rows([d.code for d in dets], pos, nrm, cvm, dets, sysm)
+    finite = np.all(np.isfinite(axis), axis=1).tolist()
+    axes = [a if ok else None for a, ok in zip(axis, finite, strict=True)]
+    return FiducialPose.from_rows([d.code for d in dets], pos, nrm, cvm, dets, sysm, axes)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -162,6 +171,9 @@ class PoseArrays:
         Covariance of the position's systematic error, beside ``covariance_mm2`` (its scatter):
         the error a pose circle's known fit bias (``Ellipse.systematic_px``) makes, the same in
         every image of the scene; None where no fit has one.
+    axis : (N, 3) ndarray or None
+        The printed +x axis of each fiducial (``FiducialPose.axis``; NaN rows where not
+        measured), when the image angles were given (:func:`estimate_ellipses`).
     """
 
     position_mm: F64
@@ -172,6 +184,7 @@ class PoseArrays:
     center_px: F64
     chi2: F64
     systematic_mm2: F64 | None = None
+    axis: F64 | None = None
 
 
 def detections_to_arrays(
@@ -233,7 +246,11 @@ def ellipse_arrays(values: F64, covs: F64, outer_radius_mm: float) -> tuple[F64,
 
 
 def estimate_ellipses(
-    values: F64, covs: F64, outer_radius_mm: float, camera: CameraModel
+    values: F64,
+    covs: F64,
+    outer_radius_mm: float,
+    camera: CameraModel,
+    rotation: F64 | None = None,
 ) -> PoseArrays:
     """Poses straight from ellipse columns, without detection objects: the path of a node that
     receives them as records (:func:`armourcam.records.detection_columns`).
@@ -250,6 +267,10 @@ def estimate_ellipses(
     outer_radius_mm : float
         Printed radius of the design's radius 1.0.
     camera : CameraModel
+    rotation : (N,) ndarray, optional
+        Image angle of each fiducial's printed +x axis (``FiducialDetection.rotation``): the
+        poses then carry their axes (:func:`pose_estimator.orientation.printed_axes`, measured
+        at the pose ellipse's centre).
 
     Returns
     -------
@@ -265,9 +286,17 @@ def estimate_ellipses(
             f"ellipse columns must be ({_COLUMNS}, K, N) and covariances (5, 5, K, N); got "
             f"{values.shape}, {covs.shape}"
         )
-    return estimate_arrays(
+    result = estimate_arrays(
         *ellipse_arrays(values, covs, outer_radius_mm), camera, systematic_px=values[6].T
     )
+    if rotation is None:
+        return result
+    angles = np.asarray(rotation, dtype=np.float64).reshape(-1)
+    if angles.shape != (values.shape[2],):
+        raise PoseError(f"rotation must be ({values.shape[2]},), got {angles.shape}")
+    centre = values[:2, 0].T
+    axis = printed_axes(camera, result.position_mm, result.normal, centre, angles)
+    return replace(result, axis=axis)
 
 
 def _ellipse_columns(ells: list[Ellipse]) -> tuple[F64, F64]:

@@ -53,8 +53,9 @@ def fuse_poses(poses: Sequence[FiducialPose], *, gate: float = CHI2_3_999) -> Fi
     FiducialPose
         Inverse-covariance-weighted position of the inlier frames, their mean normal, the fused
         covariance (inflated by the reduced chi-square when that exceeds 1), ``n_frames`` = the
-        number of inlier frames, and the mean of their systematic covariances (a bias common to
-        the frames does not average out; None when none has one); ``detection`` is None.
+        number of inlier frames, the mean of their systematic covariances (a bias common to
+        the frames does not average out; None when none has one) and the mean of their axes
+        (:func:`mean_axis`); ``detection`` is None.
 
     Raises
     ------
@@ -103,7 +104,29 @@ def fuse_poses(poses: Sequence[FiducialPose], *, gate: float = CHI2_3_999) -> Fi
         detection=None,
         n_frames=k,
         systematic_mm2=systematic,
+        axis=mean_axis([p.axis for p, kept in zip(poses, inlier, strict=True) if kept], normal),
     )
+
+
+def mean_axis(
+    axes: Sequence[NDArray[np.float64] | None], normal: NDArray[np.float64]
+) -> NDArray[np.float64] | None:
+    """The mean of the frames' printed axes, in the plane of ``normal``, or None.
+
+    None when no frame has an axis, or when they disagree so that their mean is short (under
+    half a unit: a code read a sector apart, or frames on different branches of the circle's
+    ambiguity), rather than a blend that no frame saw.
+    """
+    given = [np.asarray(a, dtype=np.float64) for a in axes if a is not None]
+    if not given:
+        return None
+    n = np.asarray(normal, dtype=np.float64)
+    mean = np.mean(given, axis=0)
+    mean -= (mean @ n) * n
+    length = float(np.linalg.norm(mean))
+    if not length >= 0.5:
+        return None
+    return np.asarray(mean / length, dtype=np.float64)
 
 
 def _weighted_mean(X: F64, info: F64) -> tuple[F64, F64]:
@@ -621,6 +644,7 @@ def moved_poses(poses: Sequence[FiducialPose], R: F64, t: F64) -> list[FiducialP
             p.detection,
             p.n_frames,
             None if p.systematic_mm2 is None else R @ p.systematic_mm2 @ R.T,
+            None if p.axis is None else R @ p.axis,
         )
         for p in poses
     ]

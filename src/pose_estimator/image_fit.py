@@ -193,6 +193,7 @@ def refine_from_image(
                 fit.covariance_mm2,
                 pose.detection,
                 pose.n_frames,
+                axis=fit.rotation[:, 0].copy(),
             )
         )
     return out

@@ -23,8 +23,9 @@ Published
     ``poses_topic`` (default ``armourcam/poses``), ``sensor_msgs/PointCloud2`` of
     ``FiducialPoseRecord`` rows (mm, camera optical frame), QoS as the input.
     ``pose_array_topic`` (default ``armourcam/pose_array``), ``geometry_msgs/PoseArray``:
-    the same poses for RViz/Foxglove in **metres** (REP 103), orientation = rotation taking
-    +z to the fiducial's normal; QoS as the input.
+    the same poses for RViz/Foxglove in **metres** (REP 103), orientation = the printed
+    target's frame (x its +x axis, where the code's sector 0 starts; z the normal), or, for a
+    pose without an axis, the rotation taking +z to the normal; QoS as the input.
     ``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``: frames, drops, repeats, camera
     state, age of the last detections (``last_input_age_s``); WARN while waiting for camera
     info or after a dropped frame, ERROR after a rejected camera info (each problem for 30 s,
@@ -63,6 +64,7 @@ from geometry_msgs.msg import Point, Pose, PoseArray, Quaternion
 from numpy.typing import NDArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, PointCloud2, PointField
 
 from armourcam import records
@@ -85,6 +87,7 @@ from armourcam.graph import (
 
 from .camera import CameraModel
 from .errors import CalibrationError
+from .orientation import target_frames
 
 PARAMS = (
     Param("detections_topic", "armourcam/detections", "Input: detections (PointCloud2)."),
@@ -155,15 +158,32 @@ def normal_quaternions(normals: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
+def frame_quaternions(normals: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """Quaternions ``(x, y, z, w)`` of the printed target frames (columns: axis, normal x axis,
+    normal; :attr:`pose_estimator.types.FiducialPose.frame`), one row per ``(n, 3)`` normal and
+    axis; where an axis is not finite, :func:`normal_quaternions`' instead."""
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    a = np.asarray(axes, dtype=np.float64).reshape(-1, 3)
+    q = normal_quaternions(n)
+    has = np.isfinite(a).all(axis=1)
+    if has.any():
+        nn = n[has] / np.linalg.norm(n[has], axis=1, keepdims=True)
+        q[has] = Rotation.from_matrix(target_frames(nn, a[has])).as_quat()
+    return q
+
+
 def pose_array(header: Any, rows: NDArray[Any]) -> PoseArray:
-    """PoseArray (metres) of ``FiducialPoseRecord`` rows (mm); orientation: +z turned onto the
-    normal."""
+    """PoseArray (metres) of ``FiducialPoseRecord`` rows (mm); orientation: the printed target's
+    frame, or +z turned onto the normal where no axis was measured (:func:`frame_quaternions`)."""
     out = PoseArray(header=header)
     if len(rows) == 0:
         return out
     # Whole columns: per-pose numpy calls would cost more than the messages themselves.
     xyz = (np.column_stack([rows["x"], rows["y"], rows["z"]]) / 1000.0).tolist()
-    quat = normal_quaternions(np.column_stack([rows["nx"], rows["ny"], rows["nz"]])).tolist()
+    quat = frame_quaternions(
+        np.column_stack([rows["nx"], rows["ny"], rows["nz"]]),
+        np.column_stack([rows["ax"], rows["ay"], rows["az"]]),
+    ).tolist()
     out.poses = [
         Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
         for (x, y, z), (qx, qy, qz, qw) in zip(xyz, quat, strict=True)

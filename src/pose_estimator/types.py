@@ -37,6 +37,13 @@ class FiducialPose:
         a known bias of its pose circle's fit makes (``Ellipse.systematic_px``), the same in
         every image of the scene, so neither fusing frames nor a displacement between two
         states fitted alike reduces it. None: no known bias.
+    axis : (3,) ndarray or None
+        Unit vector of the printed target's +x axis in the camera frame, in the fiducial's
+        plane (orthogonal to ``normal``): the line on which the coding track's sector 0 starts
+        (its boundary with sector 15), sectors running counter-clockwise about ``normal``. With
+        the normal it fixes the fiducial's full orientation (:attr:`frame`), spin included,
+        which the circle alone leaves free (:mod:`pose_estimator.orientation`). None where it
+        was not measured (no code read, synthetic poses).
     """
 
     code: int
@@ -46,6 +53,18 @@ class FiducialPose:
     detection: FiducialDetection | None = None
     n_frames: int = 1
     systematic_mm2: NDArray[np.float64] | None = None
+    axis: NDArray[np.float64] | None = None
+
+    @property
+    def frame(self) -> NDArray[np.float64] | None:
+        """The printed target's frame in the camera frame, ``(3, 3)`` with columns ``axis``,
+        ``normal x axis`` (the printed +y) and ``normal`` (the target frame's +z, out of the
+        face), or None without an axis."""
+        if self.axis is None:
+            return None
+        n = np.asarray(self.normal, dtype=np.float64)
+        a = np.asarray(self.axis, dtype=np.float64)
+        return np.column_stack([a, np.cross(n, a), n])
 
     @property
     def sigma_mm(self) -> NDArray[np.float64]:
@@ -68,9 +87,11 @@ class FiducialPose:
         covariances_mm2: Iterable[NDArray[np.float64]],
         detections: Iterable[FiducialDetection | None],
         systematic_mm2: Iterable[NDArray[np.float64] | None] | None = None,
+        axes: Iterable[NDArray[np.float64] | None] | None = None,
     ) -> list[FiducialPose]:
         """Single-frame poses, one per item of the parallel iterables (as the constructor makes
-        them, ``n_frames = 1``; ``systematic_mm2`` None: no pose has a known bias).
+        them, ``n_frames = 1``; ``systematic_mm2`` None: no pose has a known bias; ``axes``
+        None: no pose has an axis).
 
         The estimator makes hundreds per frame; the generated ``__init__`` of a frozen dataclass
         costs a slow ``object.__setattr__`` call per field, so the slots are filled directly, one
@@ -85,6 +106,8 @@ class FiducialPose:
         }
         if systematic_mm2 is not None:
             columns["systematic_mm2"] = list(systematic_mm2)
+        if axes is not None:
+            columns["axis"] = list(axes)
         n = len(columns["code"])
         if any(len(values) != n for values in columns.values()):
             sizes = {name: len(values) for name, values in columns.items()}
@@ -92,6 +115,7 @@ class FiducialPose:
         out: list[FiducialPose] = list(map(object.__new__, repeat(cls, n)))
         columns["n_frames"] = [1] * n
         columns.setdefault("systematic_mm2", [None] * n)
+        columns.setdefault("axis", [None] * n)
         for name, values in columns.items():
             _consume(map(getattr(cls, name).__set__, out, values))
         return out

@@ -36,7 +36,8 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Target]
 def test_pose_fields_match_ground_truth(
     scene: tuple[Path, Path, Target], capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """position_mm, normal and sigma_mm come with each detection and agree with the truth."""
+    """position_mm, normal, axis and sigma_mm come with each detection and agree with the
+    truth."""
     path, calib, target = scene
     status = main(["detect", str(path), "--camera", str(calib), "--diameter-mm", "7.1", "--json"])
     out, _ = capsys.readouterr()
@@ -47,6 +48,7 @@ def test_pose_fields_match_ground_truth(
     assert np.all(sigma > 0) and sigma[2] < 1.0
     assert np.all(np.abs(pos - target.position_mm) < np.maximum(5 * sigma, [0.02, 0.02, 0.5]))
     assert float(np.array(det["normal"]) @ target.rotation[:, 2]) > np.cos(np.radians(2.0))
+    assert float(np.array(det["axis"]) @ target.rotation[:, 0]) > np.cos(np.radians(2.5))
 
 
 def test_without_camera_no_pose_fields(

@@ -200,6 +200,10 @@ def test_poses_round_trip_exactly_with_detection_links() -> None:
     poses = [_pose(rng, dets[k]) for k in (4, 0, 2)] + [_pose(rng, None)]
     # One pose with a known fit bias (its systematic covariance), the others without.
     poses[1] = replace(poses[1], systematic_mm2=_spd(rng, 3) * 1e-2)
+    # Two with a printed axis (in the plane of their normals), the others without.
+    for k in (0, 1):
+        a = np.cross(poses[k].normal, rng.normal(size=3))
+        poses[k] = replace(poses[k], axis=a / np.linalg.norm(a))
     recs = _through_cloud("FiducialPoseRecord", records.poses_to_records(poses, dets))
     assert recs["detection_index"].tolist() == [4, 0, 2, -1]
     assert recs["u"][0] == dets[4].center_px[0] and np.isnan(recs["u"][3])
@@ -213,8 +217,13 @@ def test_poses_round_trip_exactly_with_detection_links() -> None:
             assert b.systematic_mm2 is None
         else:
             np.testing.assert_array_equal(a.systematic_mm2, b.systematic_mm2)
+        if a.axis is None:
+            assert b.axis is None
+        else:
+            np.testing.assert_array_equal(a.axis, b.axis)
         assert a.detection is b.detection
     assert [p.systematic_mm2 is not None for p in back] == [False, True, False, False]
+    assert [p.axis is not None for p in back] == [True, True, False, False]
     assert all(p.detection is None for p in records.records_to_poses(recs))
     bad = FiducialPose(-3, poses[0].position_mm, poses[0].normal, poses[0].covariance_mm2)
     with pytest.raises(RecordError, match=r"pose 1: code -3 outside 0\.\.4294967295"):

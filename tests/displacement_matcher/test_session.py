@@ -926,15 +926,23 @@ def test_a_camera_moved_during_a_run_is_warned(rng: np.random.Generator) -> None
     ], notices
 
 
-def test_saved_poses_keep_their_systematic_covariance() -> None:
+def test_saved_poses_keep_their_systematic_covariance_and_axis() -> None:
     """A baseline written to disk and read back after a restart keeps each pose's systematic
-    covariance (a known fit bias), and a pose without one stays without; baselines saved before
-    the field existed read as without."""
+    covariance (a known fit bias) and printed axis, and a pose without them stays without;
+    baselines saved before the fields existed read as without."""
     bias = np.diag([0.01, 0.02, 3.0])
+    axis = np.array([1.0, 0.0, 0.0])
     poses = [
         FiducialPose(3, np.array([1.0, 2.0, 900.0]), np.array([0.0, 0.0, -1.0]), np.eye(3), None),
         FiducialPose(
-            17, np.array([5.0, 2.0, 910.0]), np.array([0.0, 0.6, -0.8]), np.eye(3), None, 4, bias
+            17,
+            np.array([5.0, 2.0, 910.0]),
+            np.array([0.0, 0.6, -0.8]),
+            np.eye(3),
+            None,
+            4,
+            bias,
+            axis,
         ),
     ]
     back = [
@@ -944,6 +952,10 @@ def test_saved_poses_keep_their_systematic_covariance() -> None:
     assert back[0].systematic_mm2 is None
     assert back[1].systematic_mm2 is not None and back[1].n_frames == 4
     np.testing.assert_array_equal(back[1].systematic_mm2, bias)
+    assert back[0].axis is None
+    assert back[1].axis is not None
+    np.testing.assert_array_equal(back[1].axis, axis)
     old = session_module.pose_to_dict(poses[1])
-    del old["systematic_mm2"]
+    del old["systematic_mm2"], old["axis"]
     assert session_module.pose_from_dict(old).systematic_mm2 is None
+    assert session_module.pose_from_dict(old).axis is None

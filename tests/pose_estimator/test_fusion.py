@@ -66,6 +66,36 @@ def test_fusion_keeps_a_bias_common_to_the_frames() -> None:
     np.testing.assert_allclose(fused[0].systematic_sigma_mm, [0.1, 0.1, 2.0])
 
 
+def test_fusion_averages_the_printed_axes() -> None:
+    """The fused pose's axis is the frames' mean, in the fused normal's plane; frames that
+    disagree (a code read a half turn apart in every other frame) leave it unknown rather than
+    blended."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(9)
+    truth = [t.rotation[:, 0] for t in TARGETS]
+    frames = []
+    for f, frame in enumerate(_frames(6, rng)):
+        spun = []
+        for k, p in enumerate(frame):
+            # Each frame's reading a degree or so off the truth, about the normal.
+            angle = np.radians(rng.normal(0.0, 1.0))
+            a = np.cos(angle) * truth[k] + np.sin(angle) * np.cross(p.normal, truth[k])
+            a -= (a @ p.normal) * p.normal
+            if k == 2 and f % 2:
+                a = -a
+            spun.append(replace(p, axis=a / np.linalg.norm(a)))
+        frames.append(spun)
+    for pose in fuse(frames):
+        k = min(range(3), key=lambda j: np.linalg.norm(TARGETS[j].position_mm - pose.position_mm))
+        if k == 2:
+            assert pose.axis is None
+            continue
+        assert pose.axis is not None
+        assert abs(float(pose.axis @ pose.normal)) < 1e-12
+        assert np.degrees(np.arccos(np.clip(pose.axis @ truth[k], -1.0, 1.0))) < 1.5
+
+
 def test_fusion_rejects_an_outlier_frame() -> None:
     """A frame with a grossly wrong pose (e.g. the wrong ambiguity branch) is left out."""
     rng = np.random.default_rng(8)

@@ -148,14 +148,22 @@ def pose_record(pose: FiducialPose | None) -> dict[str, Any]:
     ``position_mm`` [x, y, z] of the fiducial's centre, unit ``normal`` [nx, ny, nz] out of the
     printed face, ``sigma_mm`` [sx, sy, sz] standard deviations (the scatter from image to
     image), ``systematic_sigma_mm`` [sx, sy, sz] those of a known fit bias, the same in every
-    image (zeros for most fiducials; see ``FiducialPose.systematic_mm2``); all None when the pose
-    circle gives no real pose.
+    image (zeros for most fiducials; see ``FiducialPose.systematic_mm2``), unit ``axis`` [ax, ay,
+    az] the printed +x axis, where the code's sector 0 starts (None when not measured); all None
+    when the pose circle gives no real pose.
     """
     if pose is None:
-        return {"position_mm": None, "normal": None, "sigma_mm": None, "systematic_sigma_mm": None}
+        return {
+            "position_mm": None,
+            "normal": None,
+            "axis": None,
+            "sigma_mm": None,
+            "systematic_sigma_mm": None,
+        }
     return {
         "position_mm": [float(x) for x in pose.position_mm],
         "normal": [float(x) for x in pose.normal],
+        "axis": None if pose.axis is None else [float(x) for x in pose.axis],
         "sigma_mm": [float(x) for x in pose.sigma_mm],
         "systematic_sigma_mm": [float(x) for x in pose.systematic_sigma_mm],
     }
