@@ -530,6 +530,12 @@ METHODS = ("armourcam", "auto", "pairs", "global", "nearest", "icp")
 _TOTALS = ("still", "fp", "fn", "true", "band_fp", "band_fn", "near_wrong", "near_n")
 
 
+#: Version of the poses kept in ``--pose-cache``, in their files' names: raised when what the
+#: detector or the pose estimator gives changes (2: poses carry their printed axes, read to a
+#: fraction of the phase step), so that a cache made by older code is not read as today's.
+POSE_CACHE_VERSION = 2
+
+
 def _cached_e2e(
     field: Field, seed: int, args: argparse.Namespace
 ) -> tuple[list, list, NDArray, NDArray]:
@@ -540,7 +546,8 @@ def _cached_e2e(
         return poses_e2e(field, *made)
     fit = "_fit" if args.image_fit else ""
     sub = f"_sub{args.blur_subpixels}" if args.blur_subpixels > 1 else ""
-    name = f"e2e_seed{seed}_units{args.units}_d{args.diameter_mm:g}{fit}{sub}.pkl"
+    made_by = f"v{POSE_CACHE_VERSION}_seed{seed}_units{args.units}_d{args.diameter_mm:g}{fit}{sub}"
+    name = f"e2e_{made_by}.pkl"
     path = args.pose_cache / name
     if path.exists():
         with path.open("rb") as f:

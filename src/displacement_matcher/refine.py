@@ -36,12 +36,15 @@ from .units import (
     DEFAULT_OVERTURN_DEG,
     DEFAULT_RIGID_TOL_MM,
     DEFAULT_SPAN_MM,
+    FRAME_TURN_TOL_DEG,
+    MAX_FACE_TURN_DEG,
     STILL_SHOWN_MM,
     UnitMap,
     UnitSpec,
     assign_units,
     branch_fit,
     close_template_pose,
+    face_turn,
     faces_shown_in_place,
     fits_template,
     learn_pair_distances,
@@ -266,6 +269,9 @@ def match_units(
     # Faces still seen where they were (depth aside): baseline index -> current index.
     in_place = still_in_place(baseline, current)
     kw["in_place"] = in_place
+    # Of those, the faces seen again as they were in every respect: their pairs stand whatever
+    # the rules below say of the units they join (:func:`_identical_pairs`).
+    identical = _identical_pairs(baseline, current, in_place)
     units, unassigned = unit_motions(result, **kw)
     gate_used = float(match_kw.get("gate_mm", result.params.gate_mm))
     excluded: set[tuple[int, int]] = set()
@@ -407,6 +413,7 @@ def match_units(
         excluded |= _unit_conflicts(result, groups[0], cur_groups)
         excluded |= _pairs_into_relocated(units, pair_of)
         excluded |= _contested_lone_pairs(baseline, current, units, pred, lone, span)
+        excluded |= _turned_too_far(baseline, current, lone | lone_turned)
         if template is not None:
             excluded |= _neighbour_faces_taken(result, units, still, template, span, pair_of)
         if template is None:
@@ -416,6 +423,7 @@ def match_units(
             # seen where it was is not ruled out. (With a template, whose groups are pure, the
             # same rule gave one more still unit displaced over 30 seeds.)
             excluded -= set(in_place.items())
+        excluded -= identical
         inputs = (pred, gate, sorted(excluded), groups[0])
         again = next(
             (k for k, (earlier, _) in enumerate(history) if _same_inputs(inputs, earlier)), None
@@ -914,6 +922,28 @@ def _unit_conflicts(
     return out
 
 
+def _identical_pairs(
+    baseline: Sequence[FiducialPose], current: Sequence[FiducialPose], in_place: dict[int, int]
+) -> set[tuple[int, int]]:
+    """Pairs of faces seen again as they were: in place within their noise, depth included
+    (:func:`_unmoved`), and turned by no more than :data:`.units.FRAME_TURN_TOL_DEG`, spin
+    included (:func:`.units.face_turn`; poses with printed axes only). A stranger of the same
+    code cannot lie there so (two printed discs do not overlap, and its code would have to be
+    printed at the same spin), so such a pair is the same fiducial whatever the groupings say:
+    where a rule built on them would rule it out (a baseline unit wrongly joined to a
+    neighbour's face, 30 e2e fields: a still unit's face 0.4 mm and 0.1 deg from where it was,
+    ruled out by :func:`_unit_conflicts`), the grouping is what is wrong.
+    """
+    out: set[tuple[int, int]] = set()
+    for i, j in in_place.items():
+        if not _unmoved(baseline[i], current[j]):
+            continue
+        turned = face_turn(baseline[i], current[j])
+        if turned is not None and float(np.min(turned[1])) <= FRAME_TURN_TOL_DEG:
+            out.add((i, j))
+    return out
+
+
 def _unmoved(before: FiducialPose, after: FiducialPose) -> bool:
     """Whether a pair of the same code lies where it was, within its noise (see
     :data:`UNMOVED_CHI2`, :data:`UNMOVED_MM`)."""
@@ -1194,6 +1224,31 @@ def _whole_in_place(
             )
         ):
             out.append(v)
+    return out
+
+
+def _turned_too_far(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    lone: dict[int, int],
+) -> set[tuple[int, int]]:
+    """Lone same-code pairs whose fiducial turned more than :data:`.units.MAX_FACE_TURN_DEG`
+    between the states.
+
+    One pair is the whole evidence of where its unit went, and a same-code stranger offers it
+    as readily as the unit's own face, most often where that face is hidden now. The code's
+    sectors fix each pose's spin, so the pair says how the face turned (:func:`.units.face_turn`,
+    the least of its four branch combinations, so a pose on its wrong branch does not condemn
+    it); a neighbour's face lies as the neighbour does. (Poses without printed axes, and pairs
+    across codes, are left to the other rules.)
+    """
+    out: set[tuple[int, int]] = set()
+    for i, j in lone.items():
+        if int(baseline[i].code) != int(current[j].code):
+            continue
+        turned = face_turn(baseline[i], current[j])
+        if turned is not None and float(np.min(turned[1])) > MAX_FACE_TURN_DEG:
+            out.add((i, j))
     return out
 
 

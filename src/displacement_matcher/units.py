@@ -52,6 +52,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from fiducial_detector.codebook import code_count
+from pose_estimator.orientation import mirror_axes, target_frames
 from pose_estimator.types import FiducialPose
 from pose_estimator.yaml_file import YamlFileError, load_yaml
 
@@ -1465,9 +1466,11 @@ def _relocated(
         ix = unit_list[n][1]
         old = np.array([base[i].position_mm for i in ix], dtype=np.float64)
         local = np.array([template.positions_mm[int(base[i].code)] for i in ix])
-        for c, (_, R, t) in enumerate(found):
+        placed = template_pose([base[i] for i in ix], template)
+        for c, (g, R, t) in enumerate(found):
             d = float(np.mean(np.linalg.norm(local @ R.T + t - old, axis=1)))
-            if d < limit_mm:
+            turn = None if placed is None else R @ placed[0].T
+            if d < limit_mm and _faces_turned_alike(ix, g, base, cur, turn):
                 cost[r, c] = d
     ri, ci = linear_sum_assignment(cost)
     return [
@@ -1475,6 +1478,41 @@ def _relocated(
         for r, c in zip(ri.tolist(), ci.tolist(), strict=True)
         if cost[r, c] < big
     ]
+
+
+def _faces_turned_alike(
+    ix: Sequence[int],
+    group: Sequence[int],
+    base: tuple[FiducialPose, ...],
+    cur: tuple[FiducialPose, ...],
+    turn: NDArray[np.float64] | None,
+) -> bool:
+    """Whether a lost unit's baseline faces ``ix`` and a current group's faces of the same codes
+    (the same fiducials, if the group is the unit) turned as the unit would have: each such
+    face's own turn (:func:`face_turn`, its printed frames on some branch of each pose) no more
+    than :data:`MAX_FACE_TURN_DEG` (a face seen in both states, as for a lone pair) and, where
+    the template fitted in both states says how the unit turned (``turn``), within
+    :data:`FACE_TURN_AGREEMENT_DEG` of that. Faces without printed axes say nothing."""
+    for i in ix:
+        for j in group:
+            if int(cur[j].code) != int(base[i].code):
+                continue
+            turned = face_turn(base[i], cur[j])
+            if turned is None:
+                continue
+            if float(np.min(turned[1])) > MAX_FACE_TURN_DEG:
+                return False
+            if turn is None:
+                continue
+            # Angle of each branch combination's rotation relative to the unit's.
+            rel = np.einsum("baij,kj->baik", turned[0], turn)
+            cos = (np.trace(rel, axis1=2, axis2=3) - 1.0) / 2.0
+            if (
+                float(np.degrees(np.arccos(np.clip(cos.max(), -1.0, 1.0))))
+                > FACE_TURN_AGREEMENT_DEG
+            ):
+                return False
+    return True
 
 
 def faces_shown_in_place(
@@ -1661,8 +1699,23 @@ def _motion_of_unit(
     na = na_all[keep] if na_all is not None else None
     with_normals = bool(same) and nb is not None and na is not None
     rigid_ok = len(keep) >= 3 and np.linalg.matrix_rank(before - before.mean(axis=0), 1e-6) >= 2
+    # The faces' own turns, where every kept same-code pair's poses carry printed axes: a
+    # tenth of a degree each, where two or three faces' positions and normals fix the turn to a
+    # few degrees (30 e2e fields: a 0.93 Dn mover seen through two faces fitted 24.3 deg, its
+    # faces' frames 21.2, the truth 21.1; its distance then 1.4 mm long).
+    frames_turn = None
+    if same and nb is not None and na is not None:
+        frames_turn = turn_from_frames(
+            [base[use[k].baseline_index] for k in keep],
+            [cur[use[k].current_index] for k in keep],
+            nb,
+            na,
+        )
     if (len(keep) >= 2 and with_normals) or rigid_ok:
-        if with_normals:
+        if frames_turn is not None:
+            R = frames_turn
+            t = np.average(after - before @ R.T, axis=0, weights=w)
+        elif with_normals:
             R, t = rigid_fit(before, after, w, nb, na)
         else:
             R, t = rigid_fit(before, after, w)
@@ -1722,6 +1775,22 @@ def _motion_of_unit(
     )
 
 
+#: A fiducial seen in both states turned at most this far (deg; the least turn over the two
+#: poses' branches of the circle's ambiguity, from their printed frames, :func:`face_turn`)
+#: where its own face is all the evidence of its unit's motion: a lone same-code pair
+#: (:func:`displacement_matcher.refine.match_units`) or a lost unit found again through a face of
+#: its code (:func:`_relocated`). The dolos fields' movers turn up to 30 deg (their true pairs
+#: 31.6 deg at most, end to end); of the same-code strangers within the gate 70 % turn further
+#: than 45 deg: a neighbour's face lies as the neighbour does, not as the unit.
+MAX_FACE_TURN_DEG = 45.0
+#: Where the template says how a lost unit found again turned, its shared faces' own turns must
+#: agree with it within this angle (deg; :func:`_relocated`): the poses' reading (a few tenths
+#: of a degree) and the template fits' rotations (a few degrees from two or three faces'
+#: normals).
+FACE_TURN_AGREEMENT_DEG = 20.0
+#: Pairs whose faces' own turns differ by more than this (deg) do not give their unit's rotation
+#: from their frames (:func:`turn_from_frames`): readings agree to a degree or so.
+FRAME_TURN_TOL_DEG = 5.0
 #: A unit's one pair must have moved this far (mm) before the template located in both states
 #: measures the unit's motion (:func:`_located_motion`): a still unit's pair measures it better
 #: than two template fits, each through two faces' normals.
@@ -1750,16 +1819,19 @@ def _centred_motion(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None:
     """``(R, origin, translation)`` of a unit measured through one same-code pair, at the unit's
     origin: the template fitted to its faces in one state (two or more, :func:`fits_template`;
-    the baseline's first) places the origin there, and the turn of the pair's face normal (the
-    smallest rotation between the template's normal of the face and the face's measured normal
-    in the other state, on the nearer branch) carries it to the other state.
-
-    The spin about the face's normal is not seen and is taken as none. None where the face
+    the baseline's first) places the origin there, and the turn of the pair's face carries it to
+    the other state: the face's full turn where both poses carry their printed axes
+    (:func:`face_turn`; each pose on the branch whose normal is nearer the template's normal
+    there, where the face lies), else the smallest rotation between the template's normal of
+    the face and the face's measured normal in the other state, on the nearer branch, the spin
+    about the normal, not seen, taken as none. None where the face
     moved less than :data:`LOCATED_MIN_MOVE_MM` across the line of sight (a still unit's depth
     outlier stays measured at its face, where only its lateral motion is confirmed), the faces
     fit in neither state, the two branches of the measured normal turn it within
-    :data:`CENTRED_BRANCH_MARGIN_DEG` of each other (a face seen nearly along its line of sight:
-    which way it turned is not told), or the normal turned :data:`LOCATED_MAX_TURN_DEG` or more.
+    :data:`CENTRED_BRANCH_MARGIN_DEG` of each other (which way it turned is not told; with
+    printed axes only where the two branches' turns also differ by more than
+    :data:`FRAME_TURN_TOL_DEG`: a face seen square on has both branches alike), or the normal
+    turned :data:`LOCATED_MAX_TURN_DEG` or more.
     """
     if template is None:
         return None
@@ -1789,18 +1861,100 @@ def _centred_motion(
         return None
     branches = np.vstack([measured, mirror_normals(at[None], measured)])
     turns = np.degrees(np.arccos(np.clip(branches @ placed, -1.0, 1.0)))
-    if abs(float(turns[0] - turns[1])) < CENTRED_BRANCH_MARGIN_DEG:
-        return None  # which way the face turned is not told: each branch as near
     if float(np.min(turns)) >= LOCATED_MAX_TURN_DEG:
         return None
-    nearer = branches[int(np.argmin(turns))]
-    if placed_before:
-        R, origin = _smallest_rotation(placed, nearer), fit[1]
+    ks = int(np.argmin(turns))
+    nearer = branches[ks]
+    # The face's own frames, where both poses carry axes: in the placed state on the branch
+    # the template's normal picks, in the other on the nearer one (as chosen above).
+    at_fit = base[pair.baseline_index] if placed_before else cur[pair.current_index]
+    turned = face_turn(at_fit, seen) if placed_before else face_turn(seen, at_fit)
+    if turned is not None:
+        kp = int(np.argmax(branch_normals(at_fit) @ placed))
+        # turned[0][k_before][k_after]: the rotation taking the frame before to the frame now.
+        options = [turned[0][kp][k] if placed_before else turned[0][k][kp] for k in (0, 1)]
+        R = options[ks]
+        tied = abs(float(turns[0] - turns[1])) < CENTRED_BRANCH_MARGIN_DEG
+        if tied and _rotation_deg(options[0] @ options[1].T) > FRAME_TURN_TOL_DEG:
+            return None  # which way the face turned is not told: each branch as near
+    elif abs(float(turns[0] - turns[1])) < CENTRED_BRANCH_MARGIN_DEG:
+        return None  # which way the face turned is not told: each branch as near
+    elif placed_before:
+        R = _smallest_rotation(placed, nearer)
     else:
-        # The origin before is where the turn back from the face puts the origin now.
         R = _smallest_rotation(nearer, placed)
-        origin = before + R.T @ (fit[1] - after)
+    # Placed now, the origin before is where the turn back from the face puts the origin now.
+    origin = fit[1] if placed_before else before + R.T @ (fit[1] - after)
     return R, origin, after + R @ (origin - before) - origin
+
+
+def branch_normals(pose: FiducialPose) -> NDArray[np.float64]:
+    """``(2, 3)``: the pose's unit normal and its mirror about the line of sight
+    (:func:`mirror_normals`), the two branches of the circle's ambiguity."""
+    n = np.asarray(pose.normal, dtype=np.float64).reshape(1, 3)
+    n = n / np.linalg.norm(n)
+    p = np.asarray(pose.position_mm, dtype=np.float64).reshape(1, 3)
+    return np.vstack([n, mirror_normals(p, n)])
+
+
+def branch_frames(pose: FiducialPose) -> NDArray[np.float64] | None:
+    """``(2, 3, 3)``: the pose's printed frame (:attr:`FiducialPose.frame`) on each branch of
+    the circle's ambiguity (the mirrored normal with its axis, :func:`mirror_axes`), or None
+    without an axis."""
+    if pose.axis is None:
+        return None
+    normals = branch_normals(pose)
+    a = np.asarray(pose.axis, dtype=np.float64).reshape(1, 3)
+    p = np.asarray(pose.position_mm, dtype=np.float64).reshape(1, 3)
+    axes = np.vstack([a / np.linalg.norm(a), mirror_axes(p, a, normals[1:])])
+    if not np.isfinite(axes).all():
+        return None
+    return target_frames(normals, axes)
+
+
+def face_turn(
+    before: FiducialPose, after: FiducialPose
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """How one fiducial turned between two states, from its printed frames (normal and axis):
+    the rotations ``R[kb][ka] = F_after @ F_before.T`` for each branch ``kb`` of the pose before
+    and ``ka`` of the pose after (``(2, 2, 3, 3)``), and their angles in degrees (``(2, 2)``);
+    None where a pose has no axis. The true turn is one of the four: on a fiducial's true
+    branches the frames give the body's whole rotation, spin about the face included."""
+    fb, fa = branch_frames(before), branch_frames(after)
+    if fb is None or fa is None:
+        return None
+    R = np.einsum("aij,bkj->baik", fa, fb)
+    cos = (np.trace(R, axis1=2, axis2=3) - 1.0) / 2.0
+    return R, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def turn_from_frames(
+    before: Sequence[FiducialPose],
+    after: Sequence[FiducialPose],
+    normals_before: NDArray[np.float64],
+    normals_after: NDArray[np.float64],
+) -> NDArray[np.float64] | None:
+    """A unit's rotation from its matched fiducials' printed frames: each pair's turn
+    (:func:`face_turn`) on the branches whose normals are ``normals_before`` and
+    ``normals_after`` (as chosen for the pairs, :func:`_pair_normals`), averaged (the rotation
+    nearest their sum, by SVD). None where a pose has no axis, or where the pairs' turns
+    disagree by more than :data:`FRAME_TURN_TOL_DEG` (faces of different bodies, or a pose's
+    branch chosen wrong: the fit on positions and normals then decides)."""
+    turns = []
+    for pb, pa, nb, na in zip(before, after, normals_before, normals_after, strict=True):
+        turned = face_turn(pb, pa)
+        if turned is None:
+            return None
+        kb = int(np.argmax(branch_normals(pb) @ nb))
+        ka = int(np.argmax(branch_normals(pa) @ na))
+        turns.append(turned[0][kb][ka])
+    if not turns:
+        return None
+    U, _, Vt = np.linalg.svd(np.sum(turns, axis=0))
+    R = U @ np.diag([1.0, 1.0, float(np.linalg.det(U @ Vt))]) @ Vt
+    if max(_rotation_deg(T @ R.T) for T in turns) > FRAME_TURN_TOL_DEG:
+        return None
+    return np.asarray(R, dtype=np.float64)
 
 
 def _smallest_rotation(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -535,14 +535,16 @@ def test_lone_fiducial_seen_in_place_with_its_depth_off_keeps_its_face() -> None
     assert pair.current_index == 1
 
 
-def _poses(rows: list[dict[str, Any]]) -> list[FiducialPose]:
-    """Poses from a recorded patch's rows (``tests/displacement_matcher/data``)."""
+def _poses(rows: list[dict[str, Any]], axes: bool = True) -> list[FiducialPose]:
+    """Poses from a recorded patch's rows (``tests/displacement_matcher/data``), with their
+    printed axes where the patch has them (and ``axes``)."""
     return [
         FiducialPose(
             r["code"],
             np.array(r["position_mm"]),
             np.array(r["normal"]),
             np.array(r["covariance_mm2"]),
+            axis=np.array(r["axis"]) if axes and r.get("axis") is not None else None,
         )
         for r in rows
     ]
@@ -1088,3 +1090,57 @@ def test_pair_into_a_unit_that_holds_another_face_where_it_was_is_a_strangers() 
     assert mixed.overturned
     assert set(mixed.current_indices) == set(doc["mover_current_indices"])
     assert not set(mixed.current_indices) & set(doc["unit_current_indices"])
+
+
+def _recorded_unit(name: str, axes: bool = True) -> tuple[UnitAnalysis, UnitMotion, dict[str, Any]]:
+    """A recorded patch with printed axes and one unit of interest (its truth under
+    ``units``), matched with the dolos template, with or without the axes: the analysis, that
+    unit's assessed motion and the patch."""
+    doc = json.loads((DATA / name).read_text())
+    an = match_units(
+        _poses(doc["baseline"], axes), _poses(doc["current"], axes), unit_map=UMAP, gate_mm=50.0
+    )
+    units, _ = assess(an.units, thresholds(GEO.dn_mm))
+    (info,) = doc["units"].values()
+    unit = next(u for u in units if info["baseline_indices"][0] in u.baseline_indices)
+    return an, unit, doc
+
+
+def test_a_face_seen_again_as_it_was_keeps_its_pair_against_a_wrong_grouping() -> None:
+    """Recorded end to end (seed 2, poses with printed axes): a still unit's code-29 face is
+    seen again 0.4 mm and 0.1 deg from where it was, but the baseline's grouping joined it to a
+    neighbour's face, and the rule that rules out pairs contradicting the current grouping
+    (:func:`displacement_matcher.refine._unit_conflicts`) took its pair. A face as it was in
+    every respect is the same fiducial whatever the groupings say: it keeps its pair (without
+    the axes it is left vanished)."""
+    an, unit, doc = _recorded_unit("face_in_place_grouped_wrong_seed2.json")
+    (info,) = doc["units"].values()
+    pairs = dict(an.result.pairs().tolist())
+    assert [pairs.get(i) for i in info["baseline_indices"]] == info["current_indices"]
+    assert unit.status == "still"
+    blind, _, _ = _recorded_unit("face_in_place_grouped_wrong_seed2.json", axes=False)
+    assert dict(blind.result.pairs().tolist()).get(info["baseline_indices"][2]) is None
+
+
+@pytest.mark.parametrize(
+    ("name", "tol_mm"),
+    [("two_faces_turned_seed21.json", 0.6), ("one_face_turned_seed21.json", 0.6)],
+)
+def test_a_turned_unit_is_measured_at_its_centre_through_its_faces_frames(
+    name: str, tol_mm: float
+) -> None:
+    """Recorded end to end (seed 21, poses with printed axes), two movers just under 1 Dn that
+    turned 21-23 deg: one seen through two faces in each state, whose positions and normals
+    fit a turn of 24.3 deg, one through three faces before and one after, whose normal alone
+    turned 6.8 deg. Their faces' frames give the turn to a degree, and each unit's centre is
+    measured within a fraction of a millimetre, under the threshold as in truth; without the
+    axes each came out displaced (1.5 and 3.2 mm long)."""
+    _, unit, doc = _recorded_unit(name)
+    (info,) = doc["units"].values()
+    truth = float(np.linalg.norm(info["centre_displacement_mm"]))
+    assert truth < doc["dn_mm"]
+    assert unit.rotation_deg == pytest.approx(info["rotation_deg"], abs=1.0)
+    assert abs(unit.distance_mm - truth) < tol_mm
+    assert unit.status == "moved"
+    _, blind, _ = _recorded_unit(name, axes=False)
+    assert blind.status == "displaced"
