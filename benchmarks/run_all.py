@@ -25,6 +25,7 @@ BENCHMARKS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "pose_speed": ((), ()),
     "matcher_scale": (("--repeat", "1"), ()),
     "matcher_field": (("--seeds", "1"), ("--seeds", "4")),
+    "matcher_count_odds": (("--seeds", "10", "--draws", "2000"), ()),
     "graph_latency": (("--duration", "30"), ()),
     "render_speed": (("--repeat", "1"), ()),
 }
