@@ -29,9 +29,9 @@ from armourcam.field import make_field
 #: Unit displacement-distance error sd (mm) measured end to end on the thirty physical-blur
 #: fields (matcher_field, session 42, units matched to their own faces): rigid motions (two or
 #: more faces) and units measured through one pair (robust sd: 1.4826 x the median absolute
-#: deviation of the reported minus the true centre distance). Before the faces' printed axes
-#: gave their turns (session 41's matcher): 0.35 and 1.26 mm.
-MEASURED_SD_MM = {"rigid (2+ faces)": 0.33, "one pair": 0.61, "one pair, no spin": 1.26}
+#: deviation of the reported minus the true centre distance), with and without the faces'
+#: printed axes (``--without-axes``: the matcher before it used each face's spin).
+MEASURED_SD_MM = {"rigid (2+ faces)": 0.33, "one pair": 0.71, "one pair, no spin": 1.17}
 
 
 def mover_distances(seeds: range, units: int) -> tuple[list[NDArray[np.float64]], float]:

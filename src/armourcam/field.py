@@ -1,7 +1,8 @@
 """Synthetic armour fields: dolosse on a breakwater slope, before and after a wave run.
 
 Each unit carries the same set of coded fiducials (the paper's section 5 set-up: every dolos bears
-the same four codes), glued at fixed positions and normals on the unit. Units lie on a 1:1.5 slope
+the same four codes), glued at fixed positions and normals on the unit, each at its own spin about
+its normal (by hand: a code does not sit the same way on two units). Units lie on a 1:1.5 slope
 seen obliquely by the paper's camera (3008x2000, 7.8 um pixels, 45 mm lens). A wave run then moves
 some units (up to 2 Dn, mostly down-slope, with a rotation), overturns a few, and fiducials are
 hidden at random in each state. Everything comes with exact ground truth: which fiducial is which,
@@ -118,6 +119,10 @@ class FieldState:
         0 for fiducials that are not rendered.
     diameter_mm : float
         Printed (outer) diameter the occlusion was computed for; :meth:`targets` renders it.
+    glue_spin : (M,) ndarray of float
+        Angle (radians) each fiducial was glued at about its face's normal, the same in both
+        states: a lab glues its targets by hand, so a code does not sit the same way on two
+        units (:meth:`frame`).
     """
 
     rotations: NDArray[np.float64]
@@ -129,6 +134,12 @@ class FieldState:
     visible: NDArray[np.bool_]
     occluded_fraction: NDArray[np.float64]
     diameter_mm: float
+    glue_spin: NDArray[np.float64]
+
+    def frame(self, i: int) -> NDArray[np.float64]:
+        """Printed target frame of fiducial ``i`` in the camera frame (columns: its +x axis,
+        +y, and the face's normal), as it was glued (:attr:`glue_spin`)."""
+        return _face_rotation(self.normal[i], self.rotations[self.unit[i]], self.glue_spin[i])
 
     @property
     def visible_ids(self) -> NDArray[np.intp]:
@@ -168,7 +179,7 @@ class FieldState:
                     int(self.code[i]),
                     design,
                     self.diameter_mm,
-                    _face_rotation(self.normal[i], self.rotations[self.unit[i]]),
+                    self.frame(i),
                     self.position_mm[i].copy(),
                 )
             )
@@ -210,7 +221,7 @@ class FieldState:
             sz = sigma_z_mm / cos_slant
             cov = sigma_xy_mm**2 * np.eye(3) + (sz**2 - sigma_xy_mm**2) * np.outer(ray, ray)
             q = p if rng is None else rng.multivariate_normal(p, cov)
-            frame = _face_rotation(self.normal[i], self.rotations[self.unit[i]])
+            frame = self.frame(i)
             axis = np.cos(spin[k]) * frame[:, 0] + np.sin(spin[k]) * frame[:, 1]
             out.append(FiducialPose(int(self.code[i]), q, self.normal[i].copy(), cov, axis=axis))
         return out
@@ -257,13 +268,18 @@ class Field:
         return np.asarray(R @ p + t - p, dtype=np.float64)
 
 
-def _face_rotation(normal: NDArray[np.float64], unit_rot: NDArray[np.float64]) -> NDArray:
-    """A target rotation whose z axis is ``normal`` (in-plane angle tied to the unit)."""
+def _face_rotation(
+    normal: NDArray[np.float64], unit_rot: NDArray[np.float64], spin: float = 0.0
+) -> NDArray:
+    """A target rotation whose z axis is ``normal``, its in-plane angle tied to the unit and
+    turned by ``spin`` (radians) about the normal: how that fiducial was glued."""
     z = normal / np.linalg.norm(normal)
     ref = unit_rot[:, 0] if abs(unit_rot[:, 0] @ z) < 0.9 else unit_rot[:, 1]
     x = ref - (ref @ z) * z
     x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(z, x), z])
+    y = np.cross(z, x)
+    c, s = np.cos(spin), np.sin(spin)
+    return np.column_stack([c * x + s * y, c * y - s * x, z])
 
 
 def _rot(axis: NDArray[np.float64], angle: float) -> NDArray[np.float64]:
@@ -346,6 +362,7 @@ def _state(
     hidden: NDArray[np.bool_],
     max_slant_deg: float,
     diameter_mm: float,
+    glue_spin: NDArray[np.float64],
 ) -> FieldState:
     n, k = len(centres), len(geometry.codes)
     pos = np.einsum("uij,kj->uki", rotations, geometry.positions_mm) + centres[:, None, :]
@@ -364,6 +381,7 @@ def _state(
         visible,
         _occlusion(camera, pos, nrm, visible, diameter_mm),
         float(diameter_mm),
+        glue_spin,
     )
 
 
@@ -531,7 +549,10 @@ def make_field(
 
     n_fid = n_units * len(geo.codes)
     hidden_b = rng.random(n_fid) < hidden_fraction
-    before = _state(geo, cam, rots, cents, hidden_b, max_slant_deg, diameter_mm)
+    # How each fiducial was glued, from a generator spawned from the field's (its draws leave
+    # the rest of the field as it was).
+    glue = rng.spawn(1)[0].uniform(0.0, 2.0 * np.pi, n_fid)
+    before = _state(geo, cam, rots, cents, hidden_b, max_slant_deg, diameter_mm, glue)
 
     order = rng.permutation(n_units)
     n_over = round(overturned_fraction * n_units)
@@ -556,5 +577,5 @@ def make_field(
     if settle:
         _settle(geo, rots_a, cents_a, np.flatnonzero(moved | overturned), n_s, min_gap_mm)
     hidden_a = rng.random(n_fid) < hidden_fraction
-    after = _state(geo, cam, rots_a, cents_a, hidden_a, max_slant_deg, diameter_mm)
+    after = _state(geo, cam, rots_a, cents_a, hidden_a, max_slant_deg, diameter_mm, glue)
     return Field(geo, cam, before, after, moved, overturned, float(width))
