@@ -44,10 +44,10 @@ from .units import (
     assign_units,
     branch_fit,
     close_template_pose,
-    face_turn,
     faces_shown_in_place,
     fits_template,
     learn_pair_distances,
+    least_turn,
     mirror_normals,
     opposed_faces,
     places_every_code,
@@ -927,7 +927,7 @@ def _identical_pairs(
 ) -> set[tuple[int, int]]:
     """Pairs of faces seen again as they were: in place within their noise, depth included
     (:func:`_unmoved`), and turned by no more than :data:`.units.FRAME_TURN_TOL_DEG`, spin
-    included (:func:`.units.face_turn`; poses with printed axes only). A stranger of the same
+    included (:func:`.units.least_turn`; poses with printed axes only). A stranger of the same
     code cannot lie there so (two printed discs do not overlap, and its code would have to be
     printed at the same spin), so such a pair is the same fiducial whatever the groupings say:
     where a rule built on them would rule it out (a baseline unit wrongly joined to a
@@ -938,8 +938,8 @@ def _identical_pairs(
     for i, j in in_place.items():
         if not _unmoved(baseline[i], current[j]):
             continue
-        turned = face_turn(baseline[i], current[j])
-        if turned is not None and float(np.min(turned[1])) <= FRAME_TURN_TOL_DEG:
+        turn = least_turn(baseline[i], current[j])
+        if turn is not None and turn <= FRAME_TURN_TOL_DEG:
             out.add((i, j))
     return out
 
@@ -1237,7 +1237,7 @@ def _turned_too_far(
 
     One pair is the whole evidence of where its unit went, and a same-code stranger offers it
     as readily as the unit's own face, most often where that face is hidden now. The code's
-    sectors fix each pose's spin, so the pair says how the face turned (:func:`.units.face_turn`,
+    sectors fix each pose's spin, so the pair says how the face turned (:func:`.units.least_turn`,
     the least of its four branch combinations, so a pose on its wrong branch does not condemn
     it); a neighbour's face lies as the neighbour does. (Poses without printed axes, and pairs
     across codes, are left to the other rules.)
@@ -1246,8 +1246,8 @@ def _turned_too_far(
     for i, j in lone.items():
         if int(baseline[i].code) != int(current[j].code):
             continue
-        turned = face_turn(baseline[i], current[j])
-        if turned is not None and float(np.min(turned[1])) > MAX_FACE_TURN_DEG:
+        turn = least_turn(baseline[i], current[j])
+        if turn is not None and turn > MAX_FACE_TURN_DEG:
             out.add((i, j))
     return out
 

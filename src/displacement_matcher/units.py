@@ -1502,13 +1502,10 @@ def _faces_turned_alike(
                 continue
             if float(np.min(turned[1])) > MAX_FACE_TURN_DEG:
                 return False
-            if turn is None:
-                continue
-            # Angle of each branch combination's rotation relative to the unit's.
-            rel = np.einsum("baij,kj->baik", turned[0], turn)
-            cos = (np.trace(rel, axis1=2, axis2=3) - 1.0) / 2.0
+            # Some branch combination's turn must be the unit's.
             if (
-                float(np.degrees(np.arccos(np.clip(cos.max(), -1.0, 1.0))))
+                turn is not None
+                and min(_rotation_deg(T @ turn.T) for T in turned[0].reshape(-1, 3, 3))
                 > FACE_TURN_AGREEMENT_DEG
             ):
                 return False
@@ -1853,13 +1850,10 @@ def _centred_motion(
     placed = fit[0] @ local
     # Placed before, the measured normal now is where the face turned to; placed now, the
     # measured normal before is where it turned from.
-    seen, at = (
-        (cur[pair.current_index], after) if placed_before else (base[pair.baseline_index], before)
-    )
-    measured = unit_normals([seen])
-    if measured is None:
+    seen = cur[pair.current_index] if placed_before else base[pair.baseline_index]
+    if unit_normals([seen]) is None:
         return None
-    branches = np.vstack([measured, mirror_normals(at[None], measured)])
+    branches = branch_normals(seen)
     turns = np.degrees(np.arccos(np.clip(branches @ placed, -1.0, 1.0)))
     if float(np.min(turns)) >= LOCATED_MAX_TURN_DEG:
         return None
@@ -1926,6 +1920,13 @@ def face_turn(
     R = np.einsum("aij,bkj->baik", fa, fb)
     cos = (np.trace(R, axis1=2, axis2=3) - 1.0) / 2.0
     return R, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def least_turn(before: FiducialPose, after: FiducialPose) -> float | None:
+    """The least of a fiducial's four branch-combination turns (:func:`face_turn`), degrees:
+    how little it can have turned, whichever branch each pose lies on; None without axes."""
+    turned = face_turn(before, after)
+    return None if turned is None else float(np.min(turned[1]))
 
 
 def turn_from_frames(
