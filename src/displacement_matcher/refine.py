@@ -46,9 +46,11 @@ from .units import (
     close_template_pose,
     faces_shown_in_place,
     fits_template,
+    frames_apart,
     learn_pair_distances,
     least_turn,
     mirror_normals,
+    one_body,
     opposed_faces,
     places_every_code,
     seen_in_place,
@@ -176,7 +178,9 @@ def match_units(
     template fitted to a still neighbour's faces (:func:`_neighbour_faces_taken`), or where the unit
     shows now, in place, a face it hid before (:func:`_hidden_face_shown`), or where the current
     unit it moved into holds, by the template, another of its unit's faces where that face was
-    (:func:`_pair_into_unit_at_rest`). A unit none of whose faces matched is found again where the
+    (:func:`_pair_into_unit_at_rest`). A unit's pairs whose faces turned otherwise than the
+    rest of its pairs' (their printed frames) are a stranger's and ruled out
+    (:func:`_strangers_in_units`). A unit none of whose faces matched is found again where the
     faces it shows now, none matched either (or only on weak evidence), fit the template
     (:func:`.units.unit_motions`); other units' pairs into those faces are then ruled out and its
     old faces are looked for where the template puts them. Each pass is still one exact global
@@ -414,6 +418,7 @@ def match_units(
         excluded |= _pairs_into_relocated(units, pair_of)
         excluded |= _contested_lone_pairs(baseline, current, units, pred, lone, span)
         excluded |= _turned_too_far(baseline, current, lone | lone_turned)
+        excluded |= _strangers_in_units(baseline, current, units, pair_of)
         if template is not None:
             excluded |= _neighbour_faces_taken(result, units, still, template, span, pair_of)
         if template is None:
@@ -474,23 +479,25 @@ def assign_unit_groups(
     hidden face grabs the mover's same-code face 10-20 mm away, cheaper than the mover's own
     30-40 mm (mostly along depth, the weakest axis of a monocular pose), and the mover's motion
     is lost. A unit is one rigid body, and each current unit belongs to one baseline unit only:
-    a baseline unit and a current group (:func:`.units.group_fiducials` on the current poses) are
-    candidates when at least two codes are on both and their same-code pairs agree on one
+    a baseline unit and a current group (:func:`.units.group_fiducials` on the current poses)
+    are candidates when at least two codes are on both and their same-code pairs agree on one
     translation within ``tol_mm`` across the line of sight (two coherent fiducials are evidence
-    one stranger is not). Costs follow the fiducial matching's (:func:`displacement_matcher.match`,
-    where a fiducial left unmatched costs half of ``gate_mm``): the motion costs its length
-    plus :data:`SCATTER_WEIGHT` of its pairs' scatter about it, each shared pair saves the
-    current face's half gate and the baseline face's,
-    except that a unit every shared face of which has a current fiducial now in front of it
-    (:func:`_covered`) is hidden there, not gone: its faces cost nothing unmatched, so its pairs
-    save only the current halves. (Judged face by face, one covered face of a unit that moved
-    19 mm let a neighbour that moved 31 mm take its group, seed 21.) A unit left unassigned
-    costs nothing. The assignment (exact, minimum cost, each unit and group used at most once,
-    no match allowed) prefers more shared faces, then the smallest
-    motion, and of two units whose faces fit one group, it gives the group to the one whose
-    place is now empty (a mover come to rest 20 mm in front of a neighbour showing the same
-    codes; 30 dolos-field seeds: still units counted displaced 5 -> 4). A baseline unit with a
-    face still seen in place (:func:`.units.still_in_place`) did not move: it takes no part, and
+    one stranger is not) and, where the poses carry printed axes, their faces turned alike
+    (:func:`.units.one_body`: every dolos carries its codes alike, so a neighbour's faces fit a
+    unit's by one motion as well as its own, but not their glue spins). Costs follow the
+    fiducial matching's (:func:`displacement_matcher.match`, where a fiducial left unmatched
+    costs half of ``gate_mm``): the motion costs its length plus :data:`SCATTER_WEIGHT` of its
+    pairs' scatter about it, each shared pair saves the current face's half gate and the
+    baseline face's, except that a unit every shared face of which has a current fiducial now in
+    front of it (:func:`_covered`) is hidden there, not gone: its faces cost nothing unmatched,
+    so its pairs save only the current halves. (Judged face by face, one covered face of a unit
+    that moved 19 mm let a neighbour that moved 31 mm take its group, seed 21.) A unit left
+    unassigned costs nothing. The assignment (exact, minimum cost, each unit and group used at
+    most once, no match allowed) prefers more shared faces, then the smallest motion, and of two
+    units whose faces fit one group, it gives the group to the one whose place is now empty (a
+    mover come to rest 20 mm in front of a neighbour showing the same codes; 30 dolos-field
+    seeds: still units counted displaced 5 -> 4). A baseline unit with a face still seen in
+    place (:func:`.units.still_in_place`) did not move: it takes no part, and
     the current unit holding that face is its own, so no other unit may claim it; the mover
     then gets the group it moved to. A face another current unit shows in place does not count
     so (:func:`_coherent_in_place`: a mover come to rest in front of a still unit's hidden face
@@ -550,6 +557,9 @@ def assign_unit_groups(
     still_units = {n for n, (_, ix) in enumerate(base_units) if any(i in shown for i in ix)}
     owned = {group_of[j] for j in shown.values() if j in group_of}
 
+    def _apart(shared: list[tuple[int, int]]) -> NDArray[np.float64]:
+        return frames_apart([baseline[i] for i, _ in shared], [current[j] for _, j in shared])
+
     rows: list[int] = []
     cols: list[int] = []
     motions: list[NDArray[np.float64]] = []
@@ -580,6 +590,9 @@ def assign_unit_groups(
             t = v.mean(axis=0)
             spread = np.linalg.norm(across_line_of_sight(v - t, centre), axis=1)
             if np.max(spread) > tol_mm:
+                continue
+            if len(shared) >= 2 and len(one_body(_apart(shared))) < len(shared):
+                # Faces whose own turns disagree are a neighbour's, glued at other spins.
                 continue
             length = float(np.linalg.norm(t))
             lateral = float(np.linalg.norm(across_line_of_sight(t, centre)))
@@ -1249,6 +1262,43 @@ def _turned_too_far(
         turn = least_turn(baseline[i], current[j])
         if turn is not None and turn > MAX_FACE_TURN_DEG:
             out.add((i, j))
+    return out
+
+
+def _strangers_in_units(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    units: Sequence[UnitMotion],
+    pair_of: dict[int, int],
+) -> set[tuple[int, int]]:
+    """Same-code pairs of a unit whose faces' turns do not agree with the rest of its pairs'.
+
+    A unit is one rigid body, so each of its faces turned as it did, spin included, and the
+    printed frames say so (:func:`.units.frames_apart`). Every dolos carries the same codes in
+    the same places, so a neighbour's faces fit a unit's template and its positions as well as
+    its own (a mover's faces taken by a neighbour turned over beside it, seed 18); but each
+    fiducial is glued at its own spin, and a stranger's face turns by the two glue spins'
+    difference. The pairs outside the largest set that agree (:func:`.units.one_body`) are ruled
+    out; where no two agree, all but the one that turned least (:func:`.units.least_turn`: a
+    unit's own face turns as the unit did, 32 deg at most on the dolos fields, a stranger's
+    anyhow), which the lone-pair rules then judge in the next pass.
+    """
+    out: set[tuple[int, int]] = set()
+    for u in units:
+        pairs = [
+            (i, pair_of[i])
+            for i in u.baseline_indices
+            if i in pair_of and int(baseline[i].code) == int(current[pair_of[i]].code)
+        ]
+        if len(pairs) < 2:
+            continue
+        apart = frames_apart([baseline[i] for i, _ in pairs], [current[j] for _, j in pairs])
+        body = one_body(apart)
+        if len(body) < 2:
+            turns = [least_turn(baseline[i], current[j]) for i, j in pairs]
+            body = (int(np.argmin([np.inf if t is None else t for t in turns])),)
+        keep = set(body)
+        out.update(p for k, p in enumerate(pairs) if k not in keep)
     return out
 
 

@@ -8,6 +8,7 @@ frame, millimetres.
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import numpy as np
@@ -132,6 +133,15 @@ def consistent_subset(
 NORMAL_SIGMA_RAD = 0.05
 
 
+@functools.lru_cache(maxsize=64)
+def _point_pairs(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Every pair ``i < j`` of ``n`` points (read-only; a matching fits thousands of units of a
+    handful of fiducials)."""
+    i, j = np.triu_indices(n, k=1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
+
+
 def rigid_fit(
     src: NDArray[np.float64],
     dst: NDArray[np.float64],
@@ -150,7 +160,7 @@ def rigid_fit(
     """
     w = np.asarray(weights, dtype=np.float64)
     var = 1.0 / np.maximum(w, 1e-12)  # mm^2 per point
-    i, j = np.triu_indices(len(src), k=1)
+    i, j = _point_pairs(len(src))
     vs, vd = src[j] - src[i], dst[j] - dst[i]
     length2 = np.einsum("ki,ki->k", vs, vs)
     good = length2 > 1e-12

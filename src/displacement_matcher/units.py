@@ -41,6 +41,7 @@ Camera frame, millimetres.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -1141,7 +1142,10 @@ def still_in_place(
     Depth is left aside (a partly covered fiducial's may be centimetres off) except where both
     poses claim it precisely (:func:`precise_depth`): a face more than
     :data:`APART_IN_DEPTH_MM` nearer or farther is then another unit's, come to rest in front of
-    the place or uncovered behind it."""
+    the place or uncovered behind it. Nor is a face that turned more than
+    :data:`MAX_FACE_TURN_DEG` (its printed frames, :func:`least_turn`): a face seen again in
+    place turns by its reading's error (a tenth of a degree; 29 deg at most, partly covered, on
+    the 30 dolos fields), a neighbour's face there by its own glue spin (57-156 deg)."""
     bpos = np.array([p.position_mm for p in baseline], dtype=np.float64).reshape(-1, 3)
     cpos = np.array([p.position_mm for p in current], dtype=np.float64).reshape(-1, 3)
     sure = precise_depth([*baseline, *current])
@@ -1158,9 +1162,13 @@ def still_in_place(
             lateral = np.linalg.norm(v - along[..., None] * ray[:, None, :], axis=2)
             apart = bsure[bi][:, None] & csure[cj][None, :] & (np.abs(along) > APART_IN_DEPTH_MM)
             lateral = np.where(np.isfinite(lateral) & ~apart, lateral, np.inf)
-        best = np.argmin(lateral, axis=1)
-        for k in np.flatnonzero(lateral[np.arange(len(bi)), best] <= STILL_SHOWN_MM).tolist():
-            out[int(bi[k])] = int(cj[best[k]])
+        for k in np.flatnonzero(np.min(lateral, axis=1) <= STILL_SHOWN_MM).tolist():
+            near = np.flatnonzero(lateral[k] <= STILL_SHOWN_MM)
+            for c in near[np.argsort(lateral[k, near], kind="stable")].tolist():
+                turn = least_turn(baseline[int(bi[k])], current[int(cj[c])])
+                if turn is None or turn <= MAX_FACE_TURN_DEG:
+                    out[int(bi[k])] = int(cj[c])
+                    break
     return out
 
 
@@ -1788,6 +1796,17 @@ FACE_TURN_AGREEMENT_DEG = 20.0
 #: Pairs whose faces' own turns differ by more than this (deg) do not give their unit's rotation
 #: from their frames (:func:`turn_from_frames`): readings agree to a degree or so.
 FRAME_TURN_TOL_DEG = 5.0
+#: Two pairs whose faces' own turns (:func:`face_turn`, on the branches that bring them closest)
+#: differ by more than this (deg) are not faces of one body (:func:`one_body`): a fiducial is
+#: glued at its own spin, so a stranger's face turns by the two glue spins' difference. On the
+#: 30 dolos fields the 6,810 units matched right agree within 2.7 deg in 99 % (16 deg at most, a
+#: partly covered face); units made of strangers' pairs lie 49-152 deg apart.
+FRAMES_APART_DEG = 30.0
+#: Poses whose branches (:func:`branch_normals`, :func:`branch_frames`) are kept: two states of
+#: a few thousand fiducials each.
+BRANCH_CACHE_SIZE = 16384
+#: :func:`one_body` searches every subset of up to this many pairs.
+ONE_BODY_EXHAUSTIVE = 10
 #: A unit's one pair must have moved this far (mm) before the template located in both states
 #: measures the unit's motion (:func:`_located_motion`): a still unit's pair measures it better
 #: than two template fits, each through two faces' normals.
@@ -1882,19 +1901,25 @@ def _centred_motion(
     return R, origin, after + R @ (origin - before) - origin
 
 
+# A matching asks for the same poses' branches thousands of times (every pass, every rule):
+# they are kept per pose (poses are immutable and hash by identity), read-only.
+@functools.lru_cache(maxsize=BRANCH_CACHE_SIZE)
 def branch_normals(pose: FiducialPose) -> NDArray[np.float64]:
     """``(2, 3)``: the pose's unit normal and its mirror about the line of sight
-    (:func:`mirror_normals`), the two branches of the circle's ambiguity."""
+    (:func:`mirror_normals`), the two branches of the circle's ambiguity (read-only)."""
     n = np.asarray(pose.normal, dtype=np.float64).reshape(1, 3)
     n = n / np.linalg.norm(n)
     p = np.asarray(pose.position_mm, dtype=np.float64).reshape(1, 3)
-    return np.vstack([n, mirror_normals(p, n)])
+    out = np.vstack([n, mirror_normals(p, n)])
+    out.flags.writeable = False
+    return out
 
 
+@functools.lru_cache(maxsize=BRANCH_CACHE_SIZE)
 def branch_frames(pose: FiducialPose) -> NDArray[np.float64] | None:
     """``(2, 3, 3)``: the pose's printed frame (:attr:`FiducialPose.frame`) on each branch of
     the circle's ambiguity (the mirrored normal with its axis, :func:`mirror_axes`), or None
-    without an axis."""
+    without an axis (read-only)."""
     if pose.axis is None:
         return None
     normals = branch_normals(pose)
@@ -1903,7 +1928,9 @@ def branch_frames(pose: FiducialPose) -> NDArray[np.float64] | None:
     axes = np.vstack([a / np.linalg.norm(a), mirror_axes(p, a, normals[1:])])
     if not np.isfinite(axes).all():
         return None
-    return target_frames(normals, axes)
+    out = target_frames(normals, axes)
+    out.flags.writeable = False
+    return out
 
 
 def face_turn(
@@ -1927,6 +1954,57 @@ def least_turn(before: FiducialPose, after: FiducialPose) -> float | None:
     how little it can have turned, whichever branch each pose lies on; None without axes."""
     turned = face_turn(before, after)
     return None if turned is None else float(np.min(turned[1]))
+
+
+def frames_apart(
+    before: Sequence[FiducialPose], after: Sequence[FiducialPose]
+) -> NDArray[np.float64]:
+    """How far apart pairs' turns are: ``(n, n)`` angles (deg) between the turns of pairs ``a``
+    and ``b`` (``before[a] -> after[a]`` and ``before[b] -> after[b]``, :func:`face_turn`), on
+    the branches of their poses that bring them closest. Faces of one body turned as the body
+    did and lie a reading's error apart; a pose without an axis is apart from none (0)."""
+    turns = []
+    for pb, pa in zip(before, after, strict=True):
+        turned = face_turn(pb, pa)
+        turns.append(None if turned is None else turned[0].reshape(4, 3, 3))
+    n = len(turns)
+    apart = np.zeros((n, n))
+    for a, b in itertools.combinations(range(n), 2):
+        ta, tb = turns[a], turns[b]
+        if ta is None or tb is None:
+            continue
+        # trace(Ta @ Tb.T) for every branch combination of each: the closest pair's angle.
+        cos = (float(np.max(np.einsum("kij,lij->kl", ta, tb))) - 1.0) / 2.0
+        apart[a, b] = apart[b, a] = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return apart
+
+
+def one_body(apart: NDArray[np.float64], tol_deg: float = FRAMES_APART_DEG) -> tuple[int, ...]:
+    """The largest set of pairs whose turns lie within ``tol_deg`` of each other's
+    (``apart`` from :func:`frames_apart`): the faces that can be one body's. Of equal sets the
+    one with the least total disagreement; a single pair where none agree. Exhaustive (a unit
+    shows a handful of faces)."""
+    n = len(apart)
+    if n == 0:
+        return ()
+    fits = apart <= tol_deg
+    if n > ONE_BODY_EXHAUSTIVE:
+        # Many faces (a unit map's large unit): grown greedily from the best-connected pair.
+        order = sorted(range(n), key=lambda a: (-int(fits[a].sum()), float(apart[a].sum())))
+        body: list[int] = []
+        for a in order:
+            if all(fits[a, b] for b in body):
+                body.append(a)
+        return tuple(sorted(body))
+    for size in range(n, 1, -1):
+        sets = [
+            s
+            for s in itertools.combinations(range(n), size)
+            if all(fits[a, b] for a, b in itertools.combinations(s, 2))
+        ]
+        if sets:
+            return min(sets, key=lambda s: float(sum(apart[a, b] for a in s for b in s)))
+    return (0,)
 
 
 def turn_from_frames(

@@ -19,8 +19,13 @@ from armourcam.field import dolos_geometry
 from displacement_matcher.damage import assess, thresholds
 from displacement_matcher.refine import match_units
 from displacement_matcher.units import (
+    FRAMES_APART_DEG,
+    MAX_FACE_TURN_DEG,
     face_turn,
+    frames_apart,
     mirror_normals,
+    one_body,
+    still_in_place,
     turn_from_frames,
 )
 from pose_estimator.orientation import mirror_axes
@@ -180,3 +185,72 @@ def test_a_still_units_hidden_face_takes_no_strangers_face_turned_away() -> None
     assert dict(blind.result.pairs().tolist()) == {0: 0}
     blind_units, _ = assess(blind.units, thresholds(GEO.dn_mm))
     assert next(u for u in blind_units if 0 in u.baseline_indices).status == "moved"
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_one_body_keeps_a_units_faces_and_drops_a_strangers(seed: int) -> None:
+    """Three faces of one unit turned with it (poses on either branch of the circle's
+    ambiguity) lie within a reading's error of each other's turn; a neighbour's face of one of
+    their codes, glued at another spin, put in place of one of them, is apart by the spins'
+    difference, and the largest agreeing set is the unit's other faces."""
+    rng = np.random.default_rng(seed)
+    axes = _glued_axes(rng)
+    turn = rotation(list(rng.normal(size=3)), rng.uniform(0.0, 30.0))
+    before = _unit(np.array([10.0, 0.0, 1600.0]), R0, axes)
+    after = _unit(np.array([40.0, 15.0, 1580.0]), turn @ R0, axes)
+    assert [p.code for p in before] == [p.code for p in after] and len(before) == 3
+    after[0] = _mirrored(after[0])  # a pose on its mirrored branch still agrees
+    apart = frames_apart(before, after)
+    assert apart.shape == (3, 3) and np.max(apart) < 1e-4
+    assert one_body(apart) == (0, 1, 2)
+    # A neighbour's face of the second code come to rest there: glued at another spin.
+    glue = rng.uniform(FRAMES_APART_DEG + 10.0, 360.0 - FRAMES_APART_DEG - 10.0)
+    stranger = replace(after[1], axis=rotation(list(after[1].normal), glue) @ after[1].axis)
+    mixed = [after[0], stranger, after[2]]
+    apart = frames_apart(before, mixed)
+    assert apart[0, 1] > FRAMES_APART_DEG and apart[1, 2] > FRAMES_APART_DEG
+    assert one_body(apart) == (0, 2)
+    # Without axes no pair is apart from another.
+    blind = frames_apart([replace(p, axis=None) for p in before], mixed)
+    assert not blind.any() and one_body(blind) == (0, 1, 2)
+
+
+def test_one_body_of_pairs_that_all_disagree_is_one_pair() -> None:
+    apart = np.array([[0.0, 80.0, 60.0], [80.0, 0.0, 100.0], [60.0, 100.0, 0.0]])
+    assert len(one_body(apart)) == 1
+    assert one_body(np.zeros((0, 0))) == ()
+
+
+def test_one_body_of_many_faces_is_found_greedily_as_exhaustively() -> None:
+    """Twelve pairs (beyond the exhaustive search): nine that agree and three strangers, each
+    apart from every other pair."""
+    n = 12
+    apart = np.full((n, n), 90.0)
+    body = [0, 1, 2, 4, 5, 7, 8, 10, 11]
+    for a in body:
+        for b in body:
+            apart[a, b] = 1.0
+    np.fill_diagonal(apart, 0.0)
+    assert one_body(apart) == tuple(body)
+
+
+def test_a_face_in_place_turned_away_is_not_the_same_face() -> None:
+    """A face of the same code seen within a millimetre of where a face was is that face seen
+    again only if it turned no more than a partly covered reading can be off
+    (:data:`MAX_FACE_TURN_DEG`): a neighbour's face come to rest there sits at its own glue
+    spin."""
+    rng = np.random.default_rng(7)
+    axes = _glued_axes(rng)
+    before = _unit(np.array([0.0, 0.0, 1500.0]), R0, axes, (29,))
+    again = [replace(before[0], position_mm=before[0].position_mm + np.array([0.3, 0.0, 0.5]))]
+    assert still_in_place(before, again) == {0: 0}
+    for spin in (MAX_FACE_TURN_DEG + 5.0, 120.0):
+        spun = rotation(list(before[0].normal), spin)
+        other = [replace(again[0], axis=spun @ before[0].axis)]
+        assert still_in_place(before, other) == {}
+        # Without axes nothing tells it apart.
+        assert still_in_place([replace(before[0], axis=None)], [replace(other[0], axis=None)]) == {
+            0: 0
+        }
+    spun = rotation(list(before[0].normal), 10.0)
+    assert still_in_place(before, [replace(again[0], axis=spun @ before[0].axis)]) == {0: 0}

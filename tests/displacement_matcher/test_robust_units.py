@@ -1144,3 +1144,26 @@ def test_a_turned_unit_is_measured_at_its_centre_through_its_faces_frames(
     assert unit.status == "moved"
     _, blind, _ = _recorded_unit(name, axes=False)
     assert blind.status == "displaced"
+
+
+@pytest.mark.parametrize("name", ["mover_faces_taken_seed18.json", "stranger_in_place_seed29.json"])
+def test_a_mover_keeps_its_faces_against_a_neighbour_glued_otherwise(name: str) -> None:
+    """Recorded end to end (poses with printed axes), two movers of 1.8-1.9 Dn seen through
+    their own faces in each state. Seed 18: a neighbour that turned over beside the first showed
+    the same three codes before, and its faces fit the mover's new ones by one rigid motion of
+    40 mm (every dolos carries its codes alike), so it took them and the mover was lost; but the
+    neighbour's faces, glued at their own spins, turned 113-123 deg apart from each other, the
+    mover's own within a degree. Seed 29: a neighbour's face of the second mover's code lies
+    where that mover's face was, turned 68 deg: not the face seen again in place, which held
+    the mover where it was. Each mover is measured through its own faces within a millimetre;
+    without the axes each is lost."""
+    an, unit, doc = _recorded_unit(name)
+    (info,) = doc["units"].values()
+    pairs = dict(an.result.pairs().tolist())
+    own = [pairs.get(i) for i in info["baseline_indices"]]
+    assert all(j is None or j in info["current_indices"] for j in own)
+    assert sum(j is not None for j in own) >= 2
+    assert unit.method == "rigid" and unit.status == "displaced"
+    np.testing.assert_allclose(unit.translation_mm, info["centre_displacement_mm"], atol=1.0)
+    _, blind, _ = _recorded_unit(name, axes=False)
+    assert blind.status == "lost"
