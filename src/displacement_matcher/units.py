@@ -1802,9 +1802,11 @@ FRAME_TURN_TOL_DEG = 5.0
 #: 30 dolos fields the 6,810 units matched right agree within 2.7 deg in 99 % (16 deg at most, a
 #: partly covered face); units made of strangers' pairs lie 49-152 deg apart.
 FRAMES_APART_DEG = 30.0
-#: Poses whose branches (:func:`branch_normals`, :func:`branch_frames`) are kept: two states of
-#: a few thousand fiducials each.
-BRANCH_CACHE_SIZE = 16384
+#: Poses whose branches (:func:`branch_normals`, :func:`branch_frames`) are kept: a dolos
+#: field's two states (about 1,400 poses) with room to spare. The cache holds the poses
+#: themselves (about 1.5 kB each with their detections), so a long-running matcher keeps at
+#: most about 6 MB of old ones.
+BRANCH_CACHE_SIZE = 4096
 #: :func:`one_body` searches every subset of up to this many pairs.
 ONE_BODY_EXHAUSTIVE = 10
 #: A unit's one pair must have moved this far (mm) before the template located in both states
