@@ -254,3 +254,28 @@ def test_a_face_in_place_turned_away_is_not_the_same_face() -> None:
         }
     spun = rotation(list(before[0].normal), 10.0)
     assert still_in_place(before, [replace(again[0], axis=spun @ before[0].axis)]) == {0: 0}
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_template_tells_a_unit_from_its_mirror(seed: int) -> None:
+    """Two faces of a unit that turned 20-35 deg: every pose mirrored (the other branch of the
+    circle's ambiguity, normal and axis) makes a mirrored unit whose frames turned alike too.
+    With the branches chosen wrong, the frames alone give the mirrored unit's turn; the
+    template, which fits the true normals and not the mirrored ones, gives the true turn."""
+    rng = np.random.default_rng(100 + seed)
+    axes = _glued_axes(rng)
+    turn = rotation(list(rng.normal(size=3)), rng.uniform(20.0, 35.0))
+    tilt = rotation([1.0, 0.3, 0.0], 25.0) @ R0  # faces well off square to the camera
+    before = _unit(np.array([-40.0, 20.0, 1500.0]), tilt, axes)[:2]
+    after = _unit(np.array([-20.0, 30.0, 1490.0]), turn @ tilt, axes, [p.code for p in before])
+    assert [p.code for p in before] == [p.code for p in after] and len(before) == 2
+    wrong_b = mirror_normals(
+        np.array([p.position_mm for p in before]), np.array([p.normal for p in before])
+    )
+    wrong_a = mirror_normals(
+        np.array([p.position_mm for p in after]), np.array([p.normal for p in after])
+    )
+    mirrored = turn_from_frames(before, after, wrong_b, wrong_a)
+    assert mirrored is not None and _angle_deg(mirrored @ turn.T) > 10.0
+    R = turn_from_frames(before, after, wrong_b, wrong_a, UMAP.template)
+    assert R is not None and _angle_deg(R @ turn.T) < 1e-3
