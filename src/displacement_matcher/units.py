@@ -578,8 +578,8 @@ def branch_fit(
     chance, not a free choice: with a stranger in the group it could make a wrong fit look
     right). Returns ``R``, ``t`` and the chosen normals.
     """
-    R, t = rigid_fit(local, seen, w, n_local, n_seen)
-    if np.all(np.einsum("ki,ki->k", n_local @ R.T, n_seen) >= np.cos(np.radians(30.0))):
+    R, t, worst = _fit_with_normals(local, seen, w, n_local, n_seen)
+    if worst >= np.cos(np.radians(30.0)):
         return R, t, n_seen
     alt = mirror_normals(seen, n_seen)
     best: tuple[float, NDArray, NDArray, NDArray] | None = None
@@ -588,12 +588,44 @@ def branch_fit(
     flips = itertools.product((False, True), repeat=k) if k <= 6 else iter([(False,) * k])
     for flip in flips:
         n = np.where(np.asarray(flip)[:, None], alt, n_seen)
-        R, t = rigid_fit(local, seen, w, n_local, n)
-        worst = float(np.min(np.einsum("ki,ki->k", n_local @ R.T, n)))
+        R, t, worst = _fit_with_normals(local, seen, w, n_local, n)
         if best is None or worst > best[0]:
             best = (worst, R, t, n)
     assert best is not None
     return best[1], best[2], best[3]
+
+
+def _fit_with_normals(
+    local: NDArray[np.float64],
+    seen: NDArray[np.float64],
+    w: NDArray[np.float64],
+    n_local: NDArray[np.float64],
+    n_seen: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """Rigid fit ``seen ~ R local + t`` with the normals ``n_seen`` (:func:`.rigid.rigid_fit`):
+    ``R``, ``t`` and the worst face's cosine between its normal and the rotated model's."""
+    R, t = rigid_fit(local, seen, w, n_local, n_seen)
+    return R, t, float(np.min(np.einsum("ki,ki->k", n_local @ R.T, n_seen)))
+
+
+def _fit_weights(poses: Sequence[FiducialPose]) -> NDArray[np.float64]:
+    """Each pose's weight in a template fit: the inverse of its mean position variance."""
+    return np.array([1.0 / max(float(np.trace(p.covariance_mm2)) / 3.0, 1e-6) for p in poses])
+
+
+def _placed_faces(
+    poses: Sequence[FiducialPose], template: UnitSpec
+) -> tuple[NDArray[np.float64], ...] | None:
+    """``(local, n_local, seen, w)``: the template's positions and normals of the poses' codes,
+    the poses' positions and their fit weights (:func:`_fit_weights`); None where the template
+    does not place every code with its normal."""
+    codes = [int(p.code) for p in poses]
+    if not all(c in template.positions_mm and c in template.normals for c in codes):
+        return None
+    local = np.array([template.positions_mm[c] for c in codes], dtype=np.float64)
+    n_local = np.array([template.normals[c] for c in codes], dtype=np.float64)
+    seen = np.array([p.position_mm for p in poses], dtype=np.float64)
+    return local, n_local, seen, _fit_weights(poses)
 
 
 def _template_branches(
@@ -607,13 +639,10 @@ def _template_branches(
     """
     if template is None or len(poses) < 3:
         return None
-    codes = [int(p.code) for p in poses]
-    if not all(c in template.positions_mm and c in template.normals for c in codes):
+    placed = _placed_faces(poses, template)
+    if placed is None:
         return None
-    local = np.array([template.positions_mm[c] for c in codes])
-    n_local = np.array([template.normals[c] for c in codes])
-    seen = np.array([p.position_mm for p in poses], dtype=np.float64)
-    w = np.array([1.0 / max(float(np.trace(p.covariance_mm2)) / 3.0, 1e-6) for p in poses])
+    local, n_local, seen, w = placed
     R, t, n_used = branch_fit(local, seen, w, n_local, normals)
     if np.any(np.einsum("ki,ki->k", n_local @ R.T, n_used) < np.cos(np.radians(30.0))):
         return None
@@ -747,7 +776,7 @@ def template_pose(
     seen = np.array([p.position_mm for p in sel], dtype=np.float64)
     n_seen = unit_normals(sel)
     has_tn = all(int(p.code) in template.normals for p in sel)
-    w = np.array([1.0 / max(float(np.trace(p.covariance_mm2)) / 3.0, 1e-6) for p in sel])
+    w = _fit_weights(sel)
     if n_seen is not None and has_tn:
         n_local = np.array([template.normals[int(p.code)] for p in sel])
         # Each pose's normal may be on the wrong branch of the circle's two-fold ambiguity: the
@@ -1962,6 +1991,24 @@ def least_turn(before: FiducialPose, after: FiducialPose) -> float | None:
     return None if turned is None else float(np.min(turned[1]))
 
 
+def _four_turns(
+    before: Sequence[FiducialPose], after: Sequence[FiducialPose]
+) -> list[NDArray[np.float64] | None]:
+    """Each pair's four branch-combination turns (:func:`face_turn`) as ``(4, 3, 3)``, index
+    ``2 * (branch before) + (branch after)``; None for a pair without axes."""
+    out: list[NDArray[np.float64] | None] = []
+    for pb, pa in zip(before, after, strict=True):
+        turned = face_turn(pb, pa)
+        out.append(None if turned is None else turned[0].reshape(4, 3, 3))
+    return out
+
+
+def _turn_cosines(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(4, 4)``: the cosines of the angles between two pairs' branch-combination turns
+    (``trace(A @ B.T) = 1 + 2 cos``)."""
+    return np.asarray((np.einsum("kij,lij->kl", a, b) - 1.0) / 2.0, dtype=np.float64)
+
+
 def frames_apart(
     before: Sequence[FiducialPose], after: Sequence[FiducialPose]
 ) -> NDArray[np.float64]:
@@ -1969,18 +2016,15 @@ def frames_apart(
     and ``b`` (``before[a] -> after[a]`` and ``before[b] -> after[b]``, :func:`face_turn`), on
     the branches of their poses that bring them closest. Faces of one body turned as the body
     did and lie a reading's error apart; a pose without an axis is apart from none (0)."""
-    turns = []
-    for pb, pa in zip(before, after, strict=True):
-        turned = face_turn(pb, pa)
-        turns.append(None if turned is None else turned[0].reshape(4, 3, 3))
+    turns = _four_turns(before, after)
     n = len(turns)
     apart = np.zeros((n, n))
     for a, b in itertools.combinations(range(n), 2):
         ta, tb = turns[a], turns[b]
         if ta is None or tb is None:
             continue
-        # trace(Ta @ Tb.T) for every branch combination of each: the closest pair's angle.
-        cos = (float(np.max(np.einsum("kij,lij->kl", ta, tb))) - 1.0) / 2.0
+        # The closest of the two pairs' branch combinations.
+        cos = float(np.max(_turn_cosines(ta, tb)))
         apart[a, b] = apart[b, a] = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
     return apart
 
@@ -2037,30 +2081,29 @@ def turn_from_frames(
     a 0.89 Dn mover measured 5.8 mm off; by the template none, the true combination fitting
     within 15 deg and the mirrored ones 27-270 deg off.)
     """
-    turned = [face_turn(pb, pa) for pb, pa in zip(before, after, strict=True)]
-    if not turned:
-        return None
-    four = [t[0].reshape(4, 3, 3) for t in turned if t is not None]
-    if len(four) < len(turned):
+    turns = _four_turns(before, after)
+    four = [t for t in turns if t is not None]
+    if not turns or len(four) < len(turns):
         return None
     # Branch combination index per pair: 2 * (branch before) + (branch after).
     chosen = tuple(
         2 * int(np.argmax(branch_normals(pb) @ nb)) + int(np.argmax(branch_normals(pa) @ na))
         for pb, pa, nb, na in zip(before, after, normals_before, normals_after, strict=True)
     )
-    if (
-        template is None
-        or not 2 <= len(four) <= JOINT_BRANCHES_MAX
-        or not all(
-            int(p.code) in template.positions_mm and int(p.code) in template.normals for p in before
+    placed_before = placed_after = None
+    if template is not None and 2 <= len(four) <= JOINT_BRANCHES_MAX:
+        placed_before, placed_after = (
+            _placed_faces(before, template),
+            _placed_faces(after, template),
         )
-    ):
+    if placed_before is None or placed_after is None:
         return _agreed_turn([four[k][c] for k, c in enumerate(chosen)])
+    placed = (placed_before, placed_after)
     # Turns that agree with the mean within the tolerance lie within twice it of each other:
     # combinations are built pair by pair from those alone.
     cos_limit = np.cos(np.radians(2.0 * FRAME_TURN_TOL_DEG))
     near = {
-        (a, b): np.einsum("kij,lij->kl", four[a], four[b]) >= 1.0 + 2.0 * cos_limit
+        (a, b): _turn_cosines(four[a], four[b]) >= cos_limit
         for a, b in itertools.combinations(range(len(four)), 2)
     }
     combos: list[tuple[int, ...]] = [(c,) for c in range(4)]
@@ -2077,7 +2120,10 @@ def turn_from_frames(
         # Each state's fit depends on its own branches only.
         if (state, branches) not in misfit_of:
             poses = before if state == 0 else after
-            misfit_of[(state, branches)] = _template_misfit_deg(poses, branches, template)
+            normals = np.array([branch_normals(p)[k] for p, k in zip(poses, branches, strict=True)])
+            local, n_local, seen, w = placed[state]
+            _, _, worst = _fit_with_normals(local, seen, w, n_local, normals)
+            misfit_of[(state, branches)] = float(np.degrees(np.arccos(np.clip(worst, -1.0, 1.0))))
         return misfit_of[(state, branches)]
 
     agreed = [
@@ -2107,23 +2153,6 @@ def _agreed_turn(turns: Sequence[NDArray[np.float64]]) -> NDArray[np.float64] | 
     if max(_rotation_deg(T @ R.T) for T in turns) > FRAME_TURN_TOL_DEG:
         return None
     return np.asarray(R, dtype=np.float64)
-
-
-def _template_misfit_deg(
-    poses: Sequence[FiducialPose], branches: Sequence[int], template: UnitSpec
-) -> float:
-    """How badly the template fits one state's faces with their normals on ``branches``
-    (0: the pose's own, 1: its mirror): the worst face's angle (deg) between its normal and
-    the template's, rotated by the fit to the positions and those normals."""
-    codes = [int(p.code) for p in poses]
-    local = np.array([template.positions_mm[c] for c in codes], dtype=np.float64)
-    n_local = np.array([template.normals[c] for c in codes], dtype=np.float64)
-    seen = np.array([p.position_mm for p in poses], dtype=np.float64)
-    normals = np.array([branch_normals(p)[b] for p, b in zip(poses, branches, strict=True)])
-    w = np.array([1.0 / max(float(np.trace(p.covariance_mm2)) / 3.0, 1e-6) for p in poses])
-    R, _ = rigid_fit(local, seen, w, n_local, normals)
-    cos = np.einsum("ki,ki->k", n_local @ R.T, normals)
-    return float(np.degrees(np.arccos(np.clip(np.min(cos), -1.0, 1.0))))
 
 
 def _smallest_rotation(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
