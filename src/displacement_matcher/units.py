@@ -1655,10 +1655,12 @@ def _motion_of_unit(
     if turned_over and template is not None and normals:
         old_codes = [c for c in codes if c in normals]
         # A face the template knows nothing of (neither normal nor hidden: a learned template
-        # knows only the faces the baseline showed) is weighed as without normals.
+        # knows only the faces the baseline showed) is weighed as without normals. A code that
+        # is not the template's at all is no face of the unit: a misread, or a stranger's tag
+        # (30 dolos fields: a still unit's hidden face read as code 6 turned it over).
         known = set(normals) | template.hidden
         turned_over = any(opposed_faces(template, a, old_codes) for a in new_codes) or (
-            len(ix) >= 2 and any(a not in known for a in new_codes)
+            len(ix) >= 2 and any(a not in known and a in template.codes for a in new_codes)
         )
     elif turned_over:
         turned_over = len(ix) >= 2

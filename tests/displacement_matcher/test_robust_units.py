@@ -1181,3 +1181,22 @@ def test_a_unit_seen_through_two_faces_is_not_measured_as_its_mirror() -> None:
     assert unit.rotation_deg == pytest.approx(info["rotation_deg"], abs=1.0)
     np.testing.assert_allclose(unit.translation_mm, info["centre_displacement_mm"], atol=1.0)
     assert unit.status == "moved"
+
+
+def test_a_misread_code_does_not_turn_a_unit_over() -> None:
+    """Recorded end to end (seed 27, default blur): a still unit's two faces (codes 17 and 29)
+    are hidden after the run, all but a sliver of the code-17 face, which reads as code 6, no
+    dolos code. The matching paired the two across codes (0.2 mm), and a code the template does
+    not know was read as a face the unit hid before: turned over, a still unit counted
+    displaced. A code that is not the template's is no face of the unit: the unit is lost, its
+    one cross-code pair no measure of it."""
+    an, unit, doc = _recorded_unit("misread_code_seed27.json")
+    (info,) = doc["units"].values()
+    assert not info["moved"] and not info["current_indices"]
+    misread = [
+        d.code_after
+        for d in an.result.displacements
+        if d.baseline_index in info["baseline_indices"] and d.label == "cross_code"
+    ]
+    assert misread and all(c not in GEO.codes for c in misread)
+    assert unit.status == "lost" and not unit.overturned
