@@ -721,8 +721,20 @@ def _coherent_in_place(
     sight: a mover come to rest in front of a still neighbour's hidden face, or a neighbour's
     face uncovered where a mover's was (30 dolos fields: 9 of the 11 such faces, against 6 of
     the 16,400 faces truly seen again in place, all of units grouped with a neighbour's face).
+    The unit's other faces seen in place by other current units do not discredit a face that
+    fits the template together with them: they are the unit's faces in place, and the current
+    grouping that parted them is mixed (30 dolos fields, learned template: a still unit's two
+    faces each grouped with a stranger of the other's code, each discrediting the other, and
+    the unit given a mover's faces 30 mm away). A whole unit holding the face still does: a
+    mover's face come to rest in front of a still unit's hidden one fits with the still unit's
+    face in place as well, across the line of sight.
     """
     unit_of = {i: n for n, (_, ix) in enumerate(base_units) for i in ix}
+    both: set[int] = set()
+    for _, ix in base_units:
+        held = [i for i in ix if i in shown]
+        if len(held) >= 2 and fits_template([current[shown[i]] for i in held], template):
+            both.update(held)
     out = dict(shown)
     for i, j in shown.items():
         if i not in unit_of or j not in group_of:
@@ -740,7 +752,7 @@ def _coherent_in_place(
             for k, g in others
         ):
             continue
-        if all(shown.get(k) not in (None, *group) for k, _ in others) or (
+        if (i not in both and all(shown.get(k) not in (None, *group) for k, _ in others)) or (
             len(group) >= 3 and fits_template([current[g] for g in group], template)
         ):
             del out[i]

@@ -24,8 +24,11 @@ from displacement_matcher.damage import assess, thresholds
 from displacement_matcher.refine import UnitAnalysis, match_units
 from displacement_matcher.types import DamageSummary, UnitMotion
 from displacement_matcher.units import (
+    UnitMap,
+    UnitSpec,
     group_fiducials,
     mirror_normals,
+    template_span,
     unit_motions,
 )
 from pose_estimator.conic_pose import circle_params, circle_pose, conic_from_params
@@ -1200,3 +1203,36 @@ def test_a_misread_code_does_not_turn_a_unit_over() -> None:
     ]
     assert misread and all(c not in GEO.codes for c in misread)
     assert unit.status == "lost" and not unit.overturned
+
+
+def test_two_faces_in_place_hold_their_unit_against_a_mixed_current_grouping() -> None:
+    """Recorded end to end (seed 23, default blur, with the template the whole field's baseline
+    taught: no position for the code-41 face it never showed). A still unit's two faces are
+    seen again where they were, but the current grouping joined each to a stranger's face of
+    the other's code 20-40 mm away, and each face in place was then taken for a stranger's,
+    discredited by the other: the unit was given a moving neighbour's two faces 30 mm away and
+    counted displaced. Two faces in place, fitting the template together, hold their unit: it
+    is still, its faces paired with themselves, and the neighbour keeps its own."""
+    doc = json.loads((DATA / "in_place_mixed_groups_seed23.json").read_text())
+    spec = doc["template"]
+    template = UnitSpec(
+        "template",
+        tuple(spec["codes"]),
+        {int(c): np.array(v) for c, v in spec["positions_mm"].items()},
+        {int(c): np.array(v) for c, v in spec["normals"].items()},
+        frozenset(spec["hidden"]),
+    )
+    assert 41 in template.hidden and 41 not in template.positions_mm
+    an = match_units(
+        _poses(doc["baseline"]),
+        _poses(doc["current"]),
+        unit_map=UnitMap((), template, template_span(template)),
+        gate_mm=50.0,
+    )
+    units, _ = assess(an.units, thresholds(GEO.dn_mm))
+    (info,) = doc["units"].values()
+    assert not info["moved"]
+    pairs = dict(an.result.pairs().tolist())
+    assert [pairs.get(i) for i in info["baseline_indices"]] == info["current_indices"]
+    unit = next(u for u in units if info["baseline_indices"][0] in u.baseline_indices)
+    assert unit.status == "still"
