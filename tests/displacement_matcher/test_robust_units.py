@@ -1212,7 +1212,7 @@ def test_two_faces_in_place_hold_their_unit_against_a_mixed_current_grouping() -
     the other's code 20-40 mm away, and each face in place was then taken for a stranger's,
     discredited by the other: the unit was given a moving neighbour's two faces 30 mm away and
     counted displaced. Two faces in place, fitting the template together, hold their unit: it
-    is still, its faces paired with themselves, and the neighbour keeps its own."""
+    is still, its faces paired with themselves."""
     doc = json.loads((DATA / "in_place_mixed_groups_seed23.json").read_text())
     spec = doc["template"]
     template = UnitSpec(
