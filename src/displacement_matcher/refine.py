@@ -730,11 +730,16 @@ def _coherent_in_place(
     face in place as well, across the line of sight.
     """
     unit_of = {i: n for n, (_, ix) in enumerate(base_units) for i in ix}
-    both: set[int] = set()
-    for _, ix in base_units:
-        held = [i for i in ix if i in shown]
-        if len(held) >= 2 and fits_template([current[shown[i]] for i in held], template):
-            both.update(held)
+    together: dict[int, bool] = {}
+
+    def held_together(n: int) -> bool:
+        # Whether unit n's faces in place fit the template together (fitted only for the few
+        # faces the test below would discredit, once per unit).
+        if n not in together:
+            held = [current[shown[k]] for k in base_units[n][1] if k in shown]
+            together[n] = len(held) >= 2 and fits_template(held, template)
+        return together[n]
+
     out = dict(shown)
     for i, j in shown.items():
         if i not in unit_of or j not in group_of:
@@ -752,7 +757,8 @@ def _coherent_in_place(
             for k, g in others
         ):
             continue
-        if (i not in both and all(shown.get(k) not in (None, *group) for k, _ in others)) or (
+        elsewhere = all(shown.get(k) not in (None, *group) for k, _ in others)
+        if (elsewhere and not held_together(unit_of[i])) or (
             len(group) >= 3 and fits_template([current[g] for g in group], template)
         ):
             del out[i]

@@ -24,11 +24,9 @@ from displacement_matcher.damage import assess, thresholds
 from displacement_matcher.refine import UnitAnalysis, match_units
 from displacement_matcher.types import DamageSummary, UnitMotion
 from displacement_matcher.units import (
-    UnitMap,
-    UnitSpec,
     group_fiducials,
     mirror_normals,
-    template_span,
+    parse_unit_map,
     unit_motions,
 )
 from pose_estimator.conic_pose import circle_params, circle_pose, conic_from_params
@@ -1214,21 +1212,10 @@ def test_two_faces_in_place_hold_their_unit_against_a_mixed_current_grouping() -
     counted displaced. Two faces in place, fitting the template together, hold their unit: it
     is still, its faces paired with themselves."""
     doc = json.loads((DATA / "in_place_mixed_groups_seed23.json").read_text())
-    spec = doc["template"]
-    template = UnitSpec(
-        "template",
-        tuple(spec["codes"]),
-        {int(c): np.array(v) for c, v in spec["positions_mm"].items()},
-        {int(c): np.array(v) for c, v in spec["normals"].items()},
-        frozenset(spec["hidden"]),
-    )
-    assert 41 in template.hidden and 41 not in template.positions_mm
-    an = match_units(
-        _poses(doc["baseline"]),
-        _poses(doc["current"]),
-        unit_map=UnitMap((), template, template_span(template)),
-        gate_mm=50.0,
-    )
+    taught = parse_unit_map({"template": doc["template"]})
+    assert taught.template is not None
+    assert 41 in taught.template.hidden and 41 not in taught.template.positions_mm
+    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=taught, gate_mm=50.0)
     units, _ = assess(an.units, thresholds(GEO.dn_mm))
     (info,) = doc["units"].values()
     assert not info["moved"]
