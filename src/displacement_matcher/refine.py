@@ -266,13 +266,15 @@ def match_units(
         "centres": {},
     }
     # The current state's own units: fiducials seen together now belong to one unit.
-    cur_groups: list[list[int]] = []
-    if not explicit:
-        cur_groups = units_of(current, span, template, rigid_tol_mm, learned)
-        kw["cur_groups"] = cur_groups
     # Faces still seen where they were (depth aside): baseline index -> current index.
     in_place = still_in_place(baseline, current)
     kw["in_place"] = in_place
+    cur_groups: list[list[int]] = []
+    if not explicit:
+        cur_groups = units_of(current, span, template, rigid_tol_mm, learned)
+        if template is not None and template.hidden:
+            cur_groups = _hidden_faces_apart(current, cur_groups, in_place, template)
+        kw["cur_groups"] = cur_groups
     # Of those, the faces seen again as they were in every respect: their pairs stand whatever
     # the rules below say of the units they join (:func:`_identical_pairs`).
     identical = _identical_pairs(baseline, current, in_place)
@@ -763,6 +765,38 @@ def _coherent_in_place(
         ):
             del out[i]
     return out
+
+
+def _hidden_faces_apart(
+    current: Sequence[FiducialPose],
+    cur_groups: list[list[int]],
+    in_place: dict[int, int],
+    template: UnitSpec,
+) -> list[list[int]]:
+    """The current groups with each face of a code the template lists as hidden split off, as a
+    group of its own, where every other face of its group is seen where it was (and it is not).
+
+    A learned template's hidden codes are those its units' resting pose hides
+    (:mod:`.learned_template`); it places no such face, so the grouping joins one by the
+    distances learned between codes (from the few the baseline shows) and may join a
+    neighbour's. A unit whose faces all lie where they were has not turned, so it does not show
+    its hidden face: that face is another unit's, most often one turned over beside it (seed 1,
+    default blur: an overturned unit's code-41 face joined a still neighbour's two faces in
+    place; the group was the still unit's, so the turn-over was not seen, and the overturned
+    unit took a mover's group 1 mm cheaper than the mover's own).
+    """
+    at_rest = set(in_place.values())
+    out: list[list[int]] = []
+    for g in cur_groups:
+        # A hidden face itself seen where it was is the unit's own, shown at rest both times.
+        stray = [j for j in g if int(current[j].code) in template.hidden and j not in at_rest]
+        rest = [j for j in g if j not in stray]
+        if not stray or not rest or not all(j in at_rest for j in rest):
+            out.append(g)
+            continue
+        out.append(rest)
+        out.extend([j] for j in stray)
+    return sorted(out, key=lambda g: g[0])
 
 
 def _pairs_into_relocated(

@@ -1223,3 +1223,59 @@ def test_two_faces_in_place_hold_their_unit_against_a_mixed_current_grouping() -
     assert [pairs.get(i) for i in info["baseline_indices"]] == info["current_indices"]
     unit = next(u for u in units if info["baseline_indices"][0] in u.baseline_indices)
     assert unit.status == "still"
+
+
+def test_a_hidden_face_beside_a_unit_at_rest_is_not_that_units() -> None:
+    """Recorded end to end (seed 1, default blur, with the template the whole field's baseline
+    taught: code 41 hidden, never shown at rest). An overturned unit shows its code-41 face
+    beside a still neighbour whose two faces are seen where they were; the current grouping,
+    which places no code-41 face, joined it to them. The still unit does not show its hidden
+    face, so the face is split off: it is the overturned unit's turn-over, and that unit no
+    longer takes a mover's new group 1 mm cheaper than the mover's own (the mover had been
+    lost, the overturned unit counted displaced through the mover's faces)."""
+    doc = json.loads((DATA / "hidden_face_beside_still_unit_seed1.json").read_text())
+    taught = parse_unit_map({"template": doc["template"]})
+    assert taught.template is not None and taught.template.hidden == frozenset({41})
+    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=taught, gate_mm=50.0)
+    units, _ = assess(an.units, thresholds(GEO.dn_mm))
+    pairs = dict(an.result.pairs().tolist())
+
+    def unit_of(info: dict[str, Any]) -> UnitMotion:
+        return next(u for u in units if info["baseline_indices"][0] in u.baseline_indices)
+
+    mover, turned, still = (doc["units"][k] for k in ("226", "184", "163"))
+    assert mover["moved"] and turned["overturned"] and not (still["moved"] or still["overturned"])
+    # The mover is measured through its own two faces, within 2 mm of its true displacement.
+    assert all(pairs.get(i) in mover["current_indices"] for i in mover["baseline_indices"])
+    m = unit_of(mover)
+    assert m.status == "displaced"
+    assert np.linalg.norm(m.translation_mm - np.array(mover["centre_displacement_mm"])) < 2.0
+    # The overturned unit is overturned, not displaced through the mover's faces.
+    t = unit_of(turned)
+    assert t.status == "overturned"
+    assert not set(t.current_indices) & set(mover["current_indices"])
+    # The still unit keeps its faces in place.
+    assert [pairs.get(i) for i in still["baseline_indices"]] == still["current_indices"]
+    assert unit_of(still).status == "still"
+
+
+def test_hidden_faces_apart_only_from_units_at_rest() -> None:
+    """A face of a hidden code leaves its current group only where every other face of the
+    group is seen where it was and it is not: a unit at rest does not show its hidden face, a
+    moved one may, and a hidden face itself in place is its unit's stray, shown both times."""
+    from displacement_matcher.refine import _hidden_faces_apart
+    from displacement_matcher.units import UnitSpec
+
+    spec = UnitSpec("template", (3, 17, 41), {}, {}, frozenset({41}))
+    current = [
+        make_pose(3, [0.0, 0.0, 500.0]),
+        make_pose(17, [20.0, 0.0, 500.0]),
+        make_pose(41, [10.0, 15.0, 505.0]),
+    ]
+    group = [[0, 1, 2]]
+    # Both shown faces in place (baseline 7 and 8), the hidden one new: split off.
+    assert _hidden_faces_apart(current, group, {7: 0, 8: 1}, spec) == [[0, 1], [2]]
+    # One shown face moved: the unit may have turned, the group stands.
+    assert _hidden_faces_apart(current, group, {7: 0}, spec) == group
+    # The hidden face in place too: the unit's own, the group stands.
+    assert _hidden_faces_apart(current, group, {7: 0, 8: 1, 9: 2}, spec) == group
