@@ -180,7 +180,9 @@ def match_units(
     unit it moved into holds, by the template, another of its unit's faces where that face was
     (:func:`_pair_into_unit_at_rest`). A unit's pairs whose faces turned otherwise than the
     rest of its pairs' (their printed frames) are a stranger's and ruled out
-    (:func:`_strangers_in_units`). A unit none of whose faces matched is found again where the
+    (:func:`_strangers_in_units`). A face of a code the template lists as hidden is no unit's
+    whose other faces are all seen where they were (:func:`_hidden_faces_apart`: a unit at rest
+    does not show it). A unit none of whose faces matched is found again where the
     faces it shows now, none matched either (or only on weak evidence), fit the template
     (:func:`.units.unit_motions`); other units' pairs into those faces are then ruled out and its
     old faces are looked for where the template puts them. Each pass is still one exact global
@@ -265,10 +267,10 @@ def match_units(
         "groups": groups,
         "centres": {},
     }
-    # The current state's own units: fiducials seen together now belong to one unit.
     # Faces still seen where they were (depth aside): baseline index -> current index.
     in_place = still_in_place(baseline, current)
     kw["in_place"] = in_place
+    # The current state's own units: fiducials seen together now belong to one unit.
     cur_groups: list[list[int]] = []
     if not explicit:
         cur_groups = units_of(current, span, template, rigid_tol_mm, learned)
