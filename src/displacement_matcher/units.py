@@ -356,7 +356,9 @@ def group_fiducials(
     the line between them) agree within ``normal_tol``. Fiducials whose code is not in
     ``template.codes`` (when given) are left out; non-finite poses are left out.
     ``pair_distances`` (:func:`learn_pair_distances`) stand in for the template's distances
-    between codes where it gives no positions for both.
+    between codes where it gives no positions for both; such pairs are joined after every pair
+    the template places (a learned template's hidden codes: their distances come from the few
+    such faces the baseline shows).
 
     Returns
     -------
@@ -495,7 +497,14 @@ def group_fiducials(
         # Best-fitting pairs first: by template error when there is a template, else by distance.
         key = np.array([mismatch(i, j) for i, j in pairs.tolist()]) if tdist else np.zeros(0)
         dist = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
-        order = np.lexsort((dist, key)) if tdist else np.argsort(dist, kind="stable")
+        # Pairs the template places (distance and normals) before those judged by learned
+        # distances alone (a learned template's hidden codes, learned from the few faces of
+        # theirs the baseline shows).
+        placed = set(template.positions_mm) if template is not None else set()
+        unplaced = np.array(
+            [not (int(code[i]) in placed and int(code[j]) in placed) for i, j in pairs.tolist()]
+        )
+        order = np.lexsort((dist, key, unplaced)) if tdist else np.argsort(dist, kind="stable")
         pairs = pairs[order]
         if tdist:
             pairs = pairs[key[order] <= 1.0]

@@ -103,6 +103,31 @@ def test_grouping_separates_interlocked_units() -> None:
     assert len(groups) <= len(set(owners.tolist())) + 3
 
 
+def test_grouping_joins_template_placed_pairs_before_learned_ones() -> None:
+    """A learned template places no hidden-code face; its pairs are judged by distances learned
+    from the few the baseline shows. A face of a hidden code exactly at a learned distance from
+    a unit's face must not take that face from the unit's own face the template places with it
+    (noisy-pose field, seed 17: a mover's code-29 face joined a neighbour's code-41 face,
+    leaving its code-3 face alone, and the mover lost its group)."""
+    from displacement_matcher.units import UnitSpec
+
+    spec = UnitSpec(
+        "template",
+        (3, 29, 41),
+        {3: np.array([0.0, 0.0, 0.0]), 29: np.array([28.0, 0.0, 0.0])},
+        {},
+        frozenset({41}),
+    )
+    learned = {(29, 41): 25.0, (41, 29): 25.0, (3, 41): 30.0, (41, 3): 30.0}
+    poses = [
+        make_pose(3, [0.0, 0.0, 600.0]),
+        make_pose(29, [28.8, 0.0, 600.0]),  # the template's 28 mm, 0.8 mm off
+        make_pose(41, [53.8, 0.0, 600.0]),  # the learned 25 mm, exactly
+    ]
+    groups = group_fiducials(poses, span_mm=60.0, template=spec, pair_distances=learned)
+    assert groups == [[0, 1], [2]]
+
+
 def test_automatic_grouping_learns_the_units_code_distances() -> None:
     """Without a unit map, every unit carrying the same codes: the distances between a unit's
     codes are the same on every unit, so they are learned from the state itself (to within a
