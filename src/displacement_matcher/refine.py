@@ -779,13 +779,14 @@ def _hidden_faces_apart(
     group of its own, where every other face of its group is seen where it was (and it is not).
 
     A learned template's hidden codes are those its units' resting pose hides
-    (:mod:`.learned_template`); it places no such face, so the grouping joins one by the
-    distances learned between codes (from the few the baseline shows) and may join a
-    neighbour's. A unit whose faces all lie where they were has not turned, so it does not show
-    its hidden face: that face is another unit's, most often one turned over beside it (seed 1,
-    default blur: an overturned unit's code-41 face joined a still neighbour's two faces in
-    place; the group was the still unit's, so the turn-over was not seen, and the overturned
-    unit took a mover's group 1 mm cheaper than the mover's own).
+    (:mod:`.learned_template`); it places no such face, and the baseline shows too few for a
+    distance between codes to be learned, so the grouping checks such a face against others by
+    the span alone and may join a neighbour's. A unit whose faces all lie where they were has
+    not turned, so it does not show its hidden face: that face is another unit's, most often
+    one turned over beside it (seed 1, default blur: an overturned unit's code-41 face joined a
+    still neighbour's two faces in place; the group was the still unit's, so the turn-over was
+    not seen, and the overturned unit took a mover's group 1 mm cheaper than the mover's
+    own).
     """
     at_rest = set(in_place.values())
     out: list[list[int]] = []

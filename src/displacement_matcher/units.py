@@ -356,9 +356,10 @@ def group_fiducials(
     the line between them) agree within ``normal_tol``. Fiducials whose code is not in
     ``template.codes`` (when given) are left out; non-finite poses are left out.
     ``pair_distances`` (:func:`learn_pair_distances`) stand in for the template's distances
-    between codes where it gives no positions for both; such pairs are joined after every pair
-    the template places (a learned template's hidden codes: their distances come from the few
-    such faces the baseline shows).
+    between codes where it gives no positions for both; with a template, pairs it does not place
+    are joined after every pair it does (a learned template's hidden codes, for which the
+    baseline shows too few faces to learn a distance: checked by the span alone, they would
+    score as a perfect fit and be joined first).
 
     Returns
     -------
@@ -497,9 +498,9 @@ def group_fiducials(
         # Best-fitting pairs first: by template error when there is a template, else by distance.
         key = np.array([mismatch(i, j) for i, j in pairs.tolist()]) if tdist else np.zeros(0)
         dist = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
-        # Pairs the template places (distance and normals) before those judged by learned
-        # distances alone (a learned template's hidden codes, learned from the few faces of
-        # theirs the baseline shows).
+        # Pairs the template places (distance and normals) before those it does not (a learned
+        # template's hidden codes: with no distance known, a pair within the span scores 0, as
+        # if it fitted perfectly).
         placed = set(template.positions_mm) if template is not None else set()
         unplaced = np.array(
             [not (int(code[i]) in placed and int(code[j]) in placed) for i, j in pairs.tolist()]
