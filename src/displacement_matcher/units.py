@@ -496,19 +496,18 @@ def group_fiducials(
 
     if len(pairs):
         # Best-fitting pairs first: by template error when there is a template, else by distance.
-        key = np.array([mismatch(i, j) for i, j in pairs.tolist()]) if tdist else np.zeros(0)
         dist = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
-        # Pairs the template places (distance and normals) before those it does not (a learned
-        # template's hidden codes: with no distance known, a pair within the span scores 0, as
-        # if it fitted perfectly).
-        placed = set(template.positions_mm) if template is not None else set()
-        unplaced = np.array(
-            [not (int(code[i]) in placed and int(code[j]) in placed) for i, j in pairs.tolist()]
-        )
-        order = np.lexsort((dist, key, unplaced)) if tdist else np.argsort(dist, kind="stable")
-        pairs = pairs[order]
         if tdist:
-            pairs = pairs[key[order] <= 1.0]
+            key = np.array([mismatch(i, j) for i, j in pairs.tolist()])
+            # Pairs the template places (distance and normals) before those it does not (a
+            # learned template's hidden codes: with no distance known, a pair within the span
+            # scores 0, as if it fitted perfectly).
+            placed = np.isin(code, list(template.positions_mm) if template is not None else [])
+            unplaced = ~(placed[pairs[:, 0]] & placed[pairs[:, 1]])
+            order = np.lexsort((dist, key, unplaced))
+            pairs = pairs[order][key[order] <= 1.0]
+        else:
+            pairs = pairs[np.argsort(dist, kind="stable")]
     group = list(range(len(idx)))
     members: dict[int, list[int]] = {k: [k] for k in range(len(idx))}
     for i, j in pairs.tolist():

@@ -21,9 +21,10 @@ from numpy.typing import NDArray
 from armourcam.field import dolos_geometry
 from displacement_matcher import match
 from displacement_matcher.damage import assess, thresholds
-from displacement_matcher.refine import UnitAnalysis, match_units
+from displacement_matcher.refine import UnitAnalysis, _hidden_faces_apart, match_units
 from displacement_matcher.types import DamageSummary, UnitMotion
 from displacement_matcher.units import (
+    UnitSpec,
     group_fiducials,
     mirror_normals,
     parse_unit_map,
@@ -1107,6 +1108,19 @@ def _recorded_unit(name: str, axes: bool = True) -> tuple[UnitAnalysis, UnitMoti
     return an, unit, doc
 
 
+def _recorded_taught(
+    name: str,
+) -> tuple[UnitAnalysis, tuple[UnitMotion, ...], dict[str, Any], UnitSpec | None]:
+    """A recorded patch matched with the template its whole field's baseline taught (recorded
+    under ``template``, read as a unit map's): the analysis, the assessed units, the patch and
+    that template."""
+    doc = json.loads((DATA / name).read_text())
+    taught = parse_unit_map({"template": doc["template"]})
+    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=taught, gate_mm=50.0)
+    units, _ = assess(an.units, thresholds(GEO.dn_mm))
+    return an, units, doc, taught.template
+
+
 def test_a_face_seen_again_as_it_was_keeps_its_pair_against_a_wrong_grouping() -> None:
     """Recorded end to end (seed 2, poses with printed axes): a still unit's code-29 face is
     seen again 0.4 mm and 0.1 deg from where it was, but the baseline's grouping joined it to a
@@ -1211,12 +1225,9 @@ def test_two_faces_in_place_hold_their_unit_against_a_mixed_current_grouping() -
     discredited by the other: the unit was given a moving neighbour's two faces 30 mm away and
     counted displaced. Two faces in place, fitting the template together, hold their unit: it
     is still, its faces paired with themselves."""
-    doc = json.loads((DATA / "in_place_mixed_groups_seed23.json").read_text())
-    taught = parse_unit_map({"template": doc["template"]})
-    assert taught.template is not None
-    assert 41 in taught.template.hidden and 41 not in taught.template.positions_mm
-    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=taught, gate_mm=50.0)
-    units, _ = assess(an.units, thresholds(GEO.dn_mm))
+    an, units, doc, taught = _recorded_taught("in_place_mixed_groups_seed23.json")
+    assert taught is not None
+    assert 41 in taught.hidden and 41 not in taught.positions_mm
     (info,) = doc["units"].values()
     assert not info["moved"]
     pairs = dict(an.result.pairs().tolist())
@@ -1233,11 +1244,8 @@ def test_a_hidden_face_beside_a_unit_at_rest_is_not_that_units() -> None:
     face, so the face is split off: it is the overturned unit's turn-over, and that unit no
     longer takes a mover's new group 1 mm cheaper than the mover's own (the mover had been
     lost, the overturned unit counted displaced through the mover's faces)."""
-    doc = json.loads((DATA / "hidden_face_beside_still_unit_seed1.json").read_text())
-    taught = parse_unit_map({"template": doc["template"]})
-    assert taught.template is not None and taught.template.hidden == frozenset({41})
-    an = match_units(_poses(doc["baseline"]), _poses(doc["current"]), unit_map=taught, gate_mm=50.0)
-    units, _ = assess(an.units, thresholds(GEO.dn_mm))
+    an, units, doc, taught = _recorded_taught("hidden_face_beside_still_unit_seed1.json")
+    assert taught is not None and taught.hidden == frozenset({41})
     pairs = dict(an.result.pairs().tolist())
 
     def unit_of(info: dict[str, Any]) -> UnitMotion:
@@ -1263,9 +1271,6 @@ def test_hidden_faces_apart_only_from_units_at_rest() -> None:
     """A face of a hidden code leaves its current group only where every other face of the
     group is seen where it was and it is not: a unit at rest does not show its hidden face, a
     moved one may, and a hidden face itself in place is its unit's stray, shown both times."""
-    from displacement_matcher.refine import _hidden_faces_apart
-    from displacement_matcher.units import UnitSpec
-
     spec = UnitSpec("template", (3, 17, 41), {}, {}, frozenset({41}))
     current = [
         make_pose(3, [0.0, 0.0, 500.0]),

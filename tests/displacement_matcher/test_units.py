@@ -12,6 +12,7 @@ from displacement_matcher.refine import match_units
 from displacement_matcher.rigid import kabsch, rigid_fit
 from displacement_matcher.units import (
     APART_IN_DEPTH_MM,
+    UnitSpec,
     group_fiducials,
     learn_pair_distances,
     load_unit_map,
@@ -109,8 +110,6 @@ def test_grouping_joins_template_placed_pairs_before_unchecked_ones() -> None:
     perfect fit. It must not take a unit's face from the unit's own face the template places
     with it (noisy-pose field, seed 17: a mover's code-29 face joined a neighbour's code-41
     face, leaving its code-3 face alone, and the mover lost its group)."""
-    from displacement_matcher.units import UnitSpec
-
     spec = UnitSpec(
         "template",
         (3, 29, 41),
