@@ -896,8 +896,13 @@ def _merge_fragments(
     A baseline unit split in two (one fiducial's depth far off fails the template's distance
     check) is whole again when one current unit holds same-code partners of both parts, their
     codes are all different and every pair of them lies within ``span_mm`` across the line of
-    sight (depth is what went wrong). Returns the new unit list (the merged unit keeps the first
-    part's id), or None when nothing merges.
+    sight (depth is what went wrong), and the group's pairs turned alike (their printed frames,
+    :func:`.units.one_body`): a neighbour's face paired into the group, glued at another spin,
+    turned otherwise, and the parts are two units (the 60 end-to-end dolos fields, true
+    template: 58 such merges refused, every one of two units; of the 14 left, 3 are of one
+    unit, and 11 of two whose stranger's face turned within 27 deg of the rest, its glue spin
+    near theirs). Returns the new unit list (the merged unit keeps the first part's id), or None
+    when nothing merges.
     """
     base = result.baseline
     unit_of = {i: n for n, (_, ix) in enumerate(base_units) for i in ix}
@@ -925,6 +930,11 @@ def _merge_fragments(
         codes = [int(base[i].code) for i in ix]
         if len(set(codes)) != len(codes):
             continue
+        shared = [(pair_of[j], j) for j in g if j in pair_of and pair_of[j] in unit_of]
+        if len(one_body(_apart_turns(result, shared))) < len(shared):
+            # The group's faces turned otherwise than each other (their printed frames): a
+            # stranger's pair joins them, not one unit's two fragments.
+            continue
         pos = np.array([base[i].position_mm for i in ix], dtype=np.float64)
         lateral = across_line_of_sight(pos[:, None] - pos[None], pos.mean(axis=0))
         if np.max(np.linalg.norm(lateral, axis=2)) > span_mm:
@@ -936,6 +946,13 @@ def _merge_fragments(
     if not changed:
         return None
     return [(name, sorted(members[n])) for n, (name, _) in enumerate(base_units) if n in members]
+
+
+def _apart_turns(result: MatchResult, pairs: Sequence[tuple[int, int]]) -> NDArray[np.float64]:
+    """:func:`.units.frames_apart` of ``(baseline, current)`` index pairs of ``result``."""
+    return frames_apart(
+        [result.baseline[i] for i, _ in pairs], [result.current[j] for _, j in pairs]
+    )
 
 
 def _unit_conflicts(

@@ -17,7 +17,8 @@ from matcher_synth import realistic_cov, rotation
 
 from armourcam.field import dolos_geometry
 from displacement_matcher.damage import assess, thresholds
-from displacement_matcher.refine import match_units
+from displacement_matcher.match import match
+from displacement_matcher.refine import _merge_fragments, match_units
 from displacement_matcher.units import (
     FRAMES_APART_DEG,
     MAX_FACE_TURN_DEG,
@@ -213,6 +214,27 @@ def test_one_body_keeps_a_units_faces_and_drops_a_strangers(seed: int) -> None:
     # Without axes no pair is apart from another.
     blind = frames_apart([replace(p, axis=None) for p in before], mixed)
     assert not blind.any() and one_body(blind) == (0, 1, 2)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_fragments_merge_only_through_faces_turned_alike(seed: int) -> None:
+    """A baseline unit split in two fragments (one face's depth far off) is merged again where
+    one current unit holds partners of both (:func:`displacement_matcher.refine.
+    _merge_fragments`), but not where one of those pairs is a stranger's: a neighbour's face of
+    that code glued at another spin turned otherwise than the rest of the group's."""
+    rng = np.random.default_rng(seed)
+    axes = _glued_axes(rng)
+    turn = rotation(list(rng.normal(size=3)), rng.uniform(0.0, 30.0))
+    before = _unit(np.array([10.0, 0.0, 1600.0]), R0, axes)
+    after = _unit(np.array([40.0, 15.0, 1580.0]), turn @ R0, axes)
+    assert [p.code for p in before] == [p.code for p in after] and len(before) == 3
+    fragments = [("U1", [0]), ("U2", [1, 2])]
+    whole = _merge_fragments(match(before, after, gate_mm=50.0), fragments, [[0, 1, 2]], 45.0)
+    assert whole == [("U1", [0, 1, 2])]
+    glue = rng.uniform(FRAMES_APART_DEG + 10.0, 360.0 - FRAMES_APART_DEG - 10.0)
+    stranger = replace(after[0], axis=rotation(list(after[0].normal), glue) @ after[0].axis)
+    mixed = match(before, [stranger, *after[1:]], gate_mm=50.0)
+    assert _merge_fragments(mixed, fragments, [[0, 1, 2]], 45.0) is None
 
 
 def test_one_body_of_pairs_that_all_disagree_is_one_pair() -> None:

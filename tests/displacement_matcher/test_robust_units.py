@@ -1121,6 +1121,27 @@ def _recorded_taught(
     return an, units, doc, taught.template
 
 
+def test_fragments_are_not_merged_through_a_strangers_pair() -> None:
+    """Recorded end to end (seed 23, poses with printed axes): unit 101 moved 1.36 Dn and shows
+    its code-3 and code-29 faces in both states; unit 121 moved 1.31 Dn beside it and is seen
+    before the run only through a sliver of its code-17 face. After the run unit 121 shows its
+    code-17 and code-29 faces, and unit 101's old code-29 face was paired with unit 121's new
+    one. The current group of unit 121's two faces then held partners of both baseline units,
+    which were merged as two fragments of one unit (:func:`displacement_matcher.refine.
+    _merge_fragments`) and measured by unit 121's faces alone: unit 101 was lost. The two pairs'
+    faces turned apart (their printed frames): a stranger's pair, not one unit's fragments.
+    Each unit keeps its own faces and is measured through them, within 2 mm of its centre's
+    true displacement."""
+    _, units, _, doc = _recorded("merge_stranger_pair_seed23.json")
+    for info in doc["units"].values():
+        (unit,) = [u for u in units if set(info["baseline_indices"]) & set(u.baseline_indices)]
+        assert sorted(unit.baseline_indices) == sorted(info["baseline_indices"])
+        assert sorted(unit.current_indices) == sorted(info["current_indices"])
+        assert unit.status == "displaced"
+        error = np.asarray(unit.translation_mm) - np.asarray(info["centre_displacement_mm"])
+        assert np.linalg.norm(error) < 2.0
+
+
 def test_a_face_seen_again_as_it_was_keeps_its_pair_against_a_wrong_grouping() -> None:
     """Recorded end to end (seed 2, poses with printed axes): a still unit's code-29 face is
     seen again 0.4 mm and 0.1 deg from where it was, but the baseline's grouping joined it to a
