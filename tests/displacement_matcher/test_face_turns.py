@@ -188,26 +188,39 @@ def test_a_still_units_hidden_face_takes_no_strangers_face_turned_away() -> None
     assert next(u for u in blind_units if 0 in u.baseline_indices).status == "moved"
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_one_body_keeps_a_units_faces_and_drops_a_strangers(seed: int) -> None:
-    """Three faces of one unit turned with it (poses on either branch of the circle's
-    ambiguity) lie within a reading's error of each other's turn; a neighbour's face of one of
-    their codes, glued at another spin, put in place of one of them, is apart by the spins'
-    difference, and the largest agreeing set is the unit's other faces."""
+def _moved_unit(seed: int) -> tuple[np.random.Generator, list[FiducialPose], list[FiducialPose]]:
+    """A dolos's three camera-facing faces before and after a move and a turn of up to 30 deg
+    (axes glued at random spins), with the generator for what a test draws next."""
     rng = np.random.default_rng(seed)
     axes = _glued_axes(rng)
     turn = rotation(list(rng.normal(size=3)), rng.uniform(0.0, 30.0))
     before = _unit(np.array([10.0, 0.0, 1600.0]), R0, axes)
     after = _unit(np.array([40.0, 15.0, 1580.0]), turn @ R0, axes)
     assert [p.code for p in before] == [p.code for p in after] and len(before) == 3
+    return rng, before, after
+
+
+def _strangers_face(pose: FiducialPose, rng: np.random.Generator) -> FiducialPose:
+    """A neighbour's face of ``pose``'s code come to rest in its place: glued at another spin,
+    more than :data:`FRAMES_APART_DEG` off."""
+    assert pose.axis is not None
+    glue = rng.uniform(FRAMES_APART_DEG + 10.0, 360.0 - FRAMES_APART_DEG - 10.0)
+    return replace(pose, axis=rotation(list(pose.normal), glue) @ pose.axis)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_one_body_keeps_a_units_faces_and_drops_a_strangers(seed: int) -> None:
+    """Three faces of one unit turned with it (poses on either branch of the circle's
+    ambiguity) lie within a reading's error of each other's turn; a neighbour's face of one of
+    their codes, glued at another spin, put in place of one of them, is apart by the spins'
+    difference, and the largest agreeing set is the unit's other faces."""
+    rng, before, after = _moved_unit(seed)
     after[0] = _mirrored(after[0])  # a pose on its mirrored branch still agrees
     apart = frames_apart(before, after)
     assert apart.shape == (3, 3) and np.max(apart) < 1e-4
     assert one_body(apart) == (0, 1, 2)
     # A neighbour's face of the second code come to rest there: glued at another spin.
-    glue = rng.uniform(FRAMES_APART_DEG + 10.0, 360.0 - FRAMES_APART_DEG - 10.0)
-    stranger = replace(after[1], axis=rotation(list(after[1].normal), glue) @ after[1].axis)
-    mixed = [after[0], stranger, after[2]]
+    mixed = [after[0], _strangers_face(after[1], rng), after[2]]
     apart = frames_apart(before, mixed)
     assert apart[0, 1] > FRAMES_APART_DEG and apart[1, 2] > FRAMES_APART_DEG
     assert one_body(apart) == (0, 2)
@@ -222,18 +235,11 @@ def test_fragments_merge_only_through_faces_turned_alike(seed: int) -> None:
     one current unit holds partners of both (:func:`displacement_matcher.refine.
     _merge_fragments`), but not where one of those pairs is a stranger's: a neighbour's face of
     that code glued at another spin turned otherwise than the rest of the group's."""
-    rng = np.random.default_rng(seed)
-    axes = _glued_axes(rng)
-    turn = rotation(list(rng.normal(size=3)), rng.uniform(0.0, 30.0))
-    before = _unit(np.array([10.0, 0.0, 1600.0]), R0, axes)
-    after = _unit(np.array([40.0, 15.0, 1580.0]), turn @ R0, axes)
-    assert [p.code for p in before] == [p.code for p in after] and len(before) == 3
+    rng, before, after = _moved_unit(seed)
     fragments = [("U1", [0]), ("U2", [1, 2])]
     whole = _merge_fragments(match(before, after, gate_mm=50.0), fragments, [[0, 1, 2]], 45.0)
     assert whole == [("U1", [0, 1, 2])]
-    glue = rng.uniform(FRAMES_APART_DEG + 10.0, 360.0 - FRAMES_APART_DEG - 10.0)
-    stranger = replace(after[0], axis=rotation(list(after[0].normal), glue) @ after[0].axis)
-    mixed = match(before, [stranger, *after[1:]], gate_mm=50.0)
+    mixed = match(before, [_strangers_face(after[0], rng), *after[1:]], gate_mm=50.0)
     assert _merge_fragments(mixed, fragments, [[0, 1, 2]], 45.0) is None
 
 
