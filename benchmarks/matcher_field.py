@@ -44,10 +44,10 @@ truth calls its disc hidden, since a unit measured through it is measurable); ``
 the same false positives and negatives without the moved units whose true centre
 displacement is within ``--band-dn`` (default 0.15 Dn, about 3 mm) of the threshold, where a
 few millimetres of monocular depth error, or measuring a translation-only unit at its fiducial
-rather than its centre, decide the side (``--verbose`` gives each listed
-unit's true displacement in Dn); unit displacement error (reported unit displacement minus truth
-at the same reference point) per camera axis, median of |error|, RMS and max over correctly
-grouped, not overturned units whose motion was measured, mm. Truth "displaced": overturned, or
+rather than its centre, decide the side (``--verbose`` gives each listed unit's true
+displacement in Dn); unit displacement error (reported unit displacement minus truth at the same
+reference point) per camera axis, median of |error|, RMS and max over correctly grouped, not
+overturned units whose motion was measured, mm. Truth "displaced": overturned, or
 the unit's centre moved >= 1 Dn.
 
 Run: ``.venv/bin/python -m benchmarks.matcher_field [--seeds 3] [--source noisy|e2e]

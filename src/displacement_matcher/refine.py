@@ -561,9 +561,6 @@ def assign_unit_groups(
     still_units = {n for n, (_, ix) in enumerate(base_units) if any(i in shown for i in ix)}
     owned = {group_of[j] for j in shown.values() if j in group_of}
 
-    def _apart(shared: list[tuple[int, int]]) -> NDArray[np.float64]:
-        return frames_apart([baseline[i] for i, _ in shared], [current[j] for _, j in shared])
-
     rows: list[int] = []
     cols: list[int] = []
     motions: list[NDArray[np.float64]] = []
@@ -595,7 +592,7 @@ def assign_unit_groups(
             spread = np.linalg.norm(across_line_of_sight(v - t, centre), axis=1)
             if np.max(spread) > tol_mm:
                 continue
-            if len(shared) >= 2 and len(one_body(_apart(shared))) < len(shared):
+            if len(shared) >= 2 and _turned_apart(baseline, current, shared):
                 # Faces whose own turns disagree are a neighbour's, glued at other spins.
                 continue
             length = float(np.linalg.norm(t))
@@ -931,7 +928,7 @@ def _merge_fragments(
         if len(set(codes)) != len(codes):
             continue
         shared = [(pair_of[j], j) for j in g if j in pair_of and pair_of[j] in unit_of]
-        if len(one_body(_apart_turns(result, shared))) < len(shared):
+        if _turned_apart(base, result.current, shared):
             # The group's faces turned otherwise than each other (their printed frames): a
             # stranger's pair joins them, not one unit's two fragments.
             continue
@@ -948,11 +945,23 @@ def _merge_fragments(
     return [(name, sorted(members[n])) for n, (name, _) in enumerate(base_units) if n in members]
 
 
-def _apart_turns(result: MatchResult, pairs: Sequence[tuple[int, int]]) -> NDArray[np.float64]:
-    """:func:`.units.frames_apart` of ``(baseline, current)`` index pairs of ``result``."""
-    return frames_apart(
-        [result.baseline[i] for i, _ in pairs], [result.current[j] for _, j in pairs]
-    )
+def _pairs_apart(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    pairs: Sequence[tuple[int, int]],
+) -> NDArray[np.float64]:
+    """:func:`.units.frames_apart` of ``(baseline, current)`` index pairs."""
+    return frames_apart([baseline[i] for i, _ in pairs], [current[j] for _, j in pairs])
+
+
+def _turned_apart(
+    baseline: Sequence[FiducialPose],
+    current: Sequence[FiducialPose],
+    pairs: Sequence[tuple[int, int]],
+) -> bool:
+    """Whether some of the ``(baseline, current)`` index pairs turned otherwise than the rest
+    (:func:`.units.one_body` leaves some out): faces of more than one unit."""
+    return len(one_body(_pairs_apart(baseline, current, pairs))) < len(pairs)
 
 
 def _unit_conflicts(
@@ -1364,7 +1373,7 @@ def _strangers_in_units(
         ]
         if len(pairs) < 2:
             continue
-        apart = frames_apart([baseline[i] for i, _ in pairs], [current[j] for _, j in pairs])
+        apart = _pairs_apart(baseline, current, pairs)
         body = one_body(apart)
         if len(body) < 2:
             turns = [least_turn(baseline[i], current[j]) for i, j in pairs]
